@@ -1,0 +1,202 @@
+"""Standard Denavit-Hartenberg chains: batched forward kinematics and analytic pose Jacobians.
+
+Convention (robotology/iKin, standard DH): the transform of link ``i`` is
+
+    H_i(q_i) = Rz(q_i + offset_i) Tz(d_i) Tx(a_i) Rx(alpha_i),
+
+and a DH table is an array of shape (L, 4) with columns ``(a, d, alpha, offset)``. The parameter
+vector of a chain is the table flattened row-major, so parameter ``4 * i + k`` is column ``k`` of
+link ``i``.
+
+Pose errors on SO(3) use a rotation vector in the *base* frame: a small orientation change
+``dw`` maps ``R`` to ``exp([dw]x) R``. Pose Jacobians therefore have rows
+``(dp_x, dp_y, dp_z, dw_x, dw_y, dw_z)``.
+
+Everything is vectorised over configurations: a loop runs over the (few) links, never over
+configurations.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+__all__ = [
+    'PARAMS_PER_LINK',
+    'dh_link_transforms',
+    'chain_frames',
+    'forward_kinematics',
+    'pose_jacobian_dh',
+    'pose_jacobian_joints',
+    'rotation_vector_error',
+]
+
+#: Columns of a DH table: a [m], d [m], alpha [rad], offset [rad].
+PARAMS_PER_LINK = 4
+
+
+def _as_configs(q: ArrayLike, n_links: int) -> tuple[NDArray[np.float64], bool]:
+    """Return ``q`` as an (N, L) array and whether the input was a single configuration."""
+    q = np.asarray(q, dtype=float)
+    single = q.ndim == 1
+    q2 = q[None, :] if single else q
+    if q2.ndim != 2 or q2.shape[1] != n_links:
+        raise ValueError(f'joint configuration must have shape ({n_links},) or (N, {n_links}), '
+                         f'got {q.shape}')
+    return q2, single
+
+
+def dh_link_transforms(dh: ArrayLike, q: ArrayLike) -> NDArray[np.float64]:
+    """Homogeneous transforms of every link for every configuration.
+
+    Parameters
+    ----------
+    dh : array_like, shape (L, 4)
+        DH table ``(a, d, alpha, offset)``.
+    q : array_like, shape (N, L)
+        Joint angles in radians.
+
+    Returns
+    -------
+    ndarray, shape (N, L, 4, 4)
+        ``H_i(q_i)`` for each configuration and link.
+    """
+    dh = np.asarray(dh, dtype=float)
+    q = np.asarray(q, dtype=float)
+    a, d, alpha, offset = dh[:, 0], dh[:, 1], dh[:, 2], dh[:, 3]
+    theta = q + offset                                  # (N, L)
+    ct, st = np.cos(theta), np.sin(theta)
+    ca, sa = np.cos(alpha), np.sin(alpha)               # (L,)
+    n, n_links = theta.shape
+    h = np.zeros((n, n_links, 4, 4))
+    h[..., 0, 0] = ct
+    h[..., 0, 1] = -st * ca
+    h[..., 0, 2] = st * sa
+    h[..., 0, 3] = a * ct
+    h[..., 1, 0] = st
+    h[..., 1, 1] = ct * ca
+    h[..., 1, 2] = -ct * sa
+    h[..., 1, 3] = a * st
+    h[..., 2, 1] = sa
+    h[..., 2, 2] = ca
+    h[..., 2, 3] = d
+    h[..., 3, 3] = 1.0
+    return h
+
+
+def chain_frames(base: ArrayLike, dh: ArrayLike, q: ArrayLike) -> NDArray[np.float64]:
+    """Every frame of the chain in the base (root) frame.
+
+    Parameters
+    ----------
+    base : array_like, shape (4, 4)
+        Root to the frame before link 0.
+    dh : array_like, shape (L, 4)
+    q : array_like, shape (L,) or (N, L)
+
+    Returns
+    -------
+    ndarray, shape (L + 1, 4, 4) or (N, L + 1, 4, 4)
+        Frame 0 is ``base``; frame ``i + 1`` is the frame after link ``i``; the last is the hand.
+    """
+    dh = np.asarray(dh, dtype=float)
+    q2, single = _as_configs(q, dh.shape[0])
+    links = dh_link_transforms(dh, q2)
+    n, n_links = q2.shape
+    frames = np.empty((n, n_links + 1, 4, 4))
+    frames[:, 0] = np.asarray(base, dtype=float)
+    for i in range(n_links):
+        frames[:, i + 1] = frames[:, i] @ links[:, i]
+    return frames[0] if single else frames
+
+
+def forward_kinematics(base: ArrayLike, dh: ArrayLike, q: ArrayLike) -> NDArray[np.float64]:
+    """Hand pose(s) in the base frame.
+
+    Parameters
+    ----------
+    base : array_like, shape (4, 4)
+    dh : array_like, shape (L, 4)
+    q : array_like, shape (L,) or (N, L)
+
+    Returns
+    -------
+    ndarray, shape (4, 4) or (N, 4, 4)
+    """
+    dh = np.asarray(dh, dtype=float)
+    q2, single = _as_configs(q, dh.shape[0])
+    links = dh_link_transforms(dh, q2)
+    pose = np.broadcast_to(np.asarray(base, dtype=float), (q2.shape[0], 4, 4))
+    for i in range(dh.shape[0]):
+        pose = pose @ links[:, i]
+    return pose[0] if single else pose
+
+
+def pose_jacobian_dh(base: ArrayLike, dh: ArrayLike, q: ArrayLike) -> NDArray[np.float64]:
+    """Analytic Jacobian of the hand pose with respect to the DH parameters.
+
+    For link ``i`` with parent frame ``(z_p, o_p)`` and child frame ``(x_c, o_c)``:
+    ``offset`` rotates about ``z_p`` through ``o_p``; ``d`` translates along ``z_p``;
+    ``a`` translates along ``x_c``; ``alpha`` rotates about ``x_c`` through ``o_c``.
+
+    Parameters
+    ----------
+    base : array_like, shape (4, 4)
+    dh : array_like, shape (L, 4)
+    q : array_like, shape (L,) or (N, L)
+
+    Returns
+    -------
+    ndarray, shape (6, 4 L) or (N, 6, 4 L)
+        Rows: position (3) then base-frame rotation vector (3); columns: parameters in row-major
+        DH-table order ``(a_0, d_0, alpha_0, offset_0, a_1, ...)``.
+    """
+    frames = chain_frames(base, dh, q)
+    single = frames.ndim == 3
+    f = frames[None] if single else frames
+    p = f[:, -1, :3, 3][:, None, :]                     # (N, 1, 3) hand position
+    z_p = f[:, :-1, :3, 2]                              # (N, L, 3) parent z axes
+    o_p = f[:, :-1, :3, 3]
+    x_c = f[:, 1:, :3, 0]                               # (N, L, 3) child x axes
+    o_c = f[:, 1:, :3, 3]
+    n, n_links = z_p.shape[:2]
+    jac = np.zeros((n, n_links, PARAMS_PER_LINK, 6))
+    jac[:, :, 0, :3] = x_c                              # a
+    jac[:, :, 1, :3] = z_p                              # d
+    jac[:, :, 2, :3] = np.cross(x_c, p - o_c)           # alpha
+    jac[:, :, 2, 3:] = x_c
+    jac[:, :, 3, :3] = np.cross(z_p, p - o_p)           # offset
+    jac[:, :, 3, 3:] = z_p
+    jac = jac.reshape(n, n_links * PARAMS_PER_LINK, 6).transpose(0, 2, 1)
+    return jac[0] if single else jac
+
+
+def pose_jacobian_joints(base: ArrayLike, dh: ArrayLike, q: ArrayLike) -> NDArray[np.float64]:
+    """Geometric Jacobian of the hand pose with respect to the joint angles.
+
+    Returns
+    -------
+    ndarray, shape (6, L) or (N, 6, L)
+        Identical to the ``offset`` columns of :func:`pose_jacobian_dh`, since a joint angle
+        enters the chain exactly as its offset does.
+    """
+    jac = pose_jacobian_dh(base, dh, q)
+    return jac[..., PARAMS_PER_LINK - 1::PARAMS_PER_LINK]
+
+
+def rotation_vector_error(r_target: ArrayLike, r_estimate: ArrayLike) -> NDArray[np.float64]:
+    """Base-frame rotation vector ``w`` with ``R_target = exp([w]x) R_estimate``.
+
+    Parameters
+    ----------
+    r_target, r_estimate : array_like, shape (3, 3) or (N, 3, 3)
+
+    Returns
+    -------
+    ndarray, shape (3,) or (N, 3)
+    """
+    from scipy.spatial.transform import Rotation
+
+    r_target = np.asarray(r_target, dtype=float)
+    r_estimate = np.asarray(r_estimate, dtype=float)
+    rel = r_target @ np.swapaxes(r_estimate, -1, -2)
+    return Rotation.from_matrix(rel).as_rotvec()

@@ -1,0 +1,367 @@
+"""Robot descriptions: load, validate, and evaluate the arm (and the eyes that watch it).
+
+A description is a YAML file (see ``robots/icub_right_arm.yaml``). :func:`load_robot` accepts a
+packaged name (``"icub_right_arm"``) or a path, validates every field, and returns an
+:class:`ArmModel`. Angles in the file are in the unit named by ``angle_unit`` (``deg`` or
+``rad``); everything in memory is SI (metres, radians).
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+
+from . import kinematics
+
+__all__ = [
+    'RobotDescriptionError',
+    'CameraIntrinsics',
+    'MarkerPlacement',
+    'EyeChain',
+    'ArmModel',
+    'load_robot',
+    'robot_path',
+]
+
+
+class RobotDescriptionError(ValueError):
+    """A robot description is malformed; the message names the offending field."""
+
+
+@dataclass(frozen=True)
+class CameraIntrinsics:
+    """Pinhole intrinsics without distortion (the iCub simulator's eye cameras)."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+    @property
+    def K(self) -> NDArray[np.float64]:  # noqa: N802 (the usual name)
+        """Camera matrix, shape (3, 3)."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    def scaled(self, width: int, height: int) -> 'CameraIntrinsics':
+        """The same field of view at another resolution (pixel-centre convention kept)."""
+        sx, sy = width / self.width, height / self.height
+        return CameraIntrinsics(width, height, self.fx * sx, self.fy * sy,
+                                (self.cx + 0.5) * sx - 0.5, (self.cy + 0.5) * sy - 0.5)
+
+
+@dataclass(frozen=True)
+class MarkerPlacement:
+    """One ArUco marker fixed to the hand.
+
+    ``hand_T_marker`` is the marker frame (origin at the square's centre, z out of the printed
+    face) in the hand frame, shape (4, 4).
+    """
+
+    name: str
+    marker_id: int
+    hand_T_marker: NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class EyeChain:
+    """The iCubEye kinematic chain for both eyes; the head joints are held still."""
+
+    base: NDArray[np.float64]                  # root -> frame before the neck, (4, 4)
+    links: dict[str, NDArray[np.float64]]      # 'left' / 'right' -> (5, 4) DH table
+    head_joints: tuple[str, ...]
+    head_pose: NDArray[np.float64]             # (5,) radians
+
+    def camera_pose(self, eye: str = 'left', head: ArrayLike | None = None) -> NDArray[np.float64]:
+        """Optical frame of ``eye`` (z forward, x right, y down) in the root frame, (4, 4)."""
+        if eye not in self.links:
+            raise ValueError(f"unknown eye {eye!r}; expected one of {sorted(self.links)}")
+        h = self.head_pose if head is None else np.asarray(head, dtype=float)
+        if h.shape != (len(self.head_joints),) or not np.all(np.isfinite(h)):
+            raise ValueError(f'head pose must be {len(self.head_joints)} finite angles, got {h!r}')
+        return kinematics.forward_kinematics(self.base, self.links[eye], h)
+
+
+@dataclass(frozen=True)
+class ArmModel:
+    """A serial arm described by a standard DH table.
+
+    Attributes
+    ----------
+    name : str
+    joint_names : tuple of str, length L
+    dh : ndarray, shape (L, 4)
+        ``(a, d, alpha, offset)`` per joint, metres and radians.
+    base : ndarray, shape (4, 4)
+        Root frame to the frame before the first calibrated joint (H0 times blocked links).
+    limits : ndarray, shape (L, 2)
+        Joint limits [rad].
+    calibration_box : ndarray, shape (L, 2)
+        The joint box searched during calibration [rad], inside ``limits``.
+    """
+
+    name: str
+    joint_names: tuple[str, ...]
+    dh: NDArray[np.float64]
+    base: NDArray[np.float64]
+    limits: NDArray[np.float64]
+    calibration_box: NDArray[np.float64]
+    root_frame: str = 'root_link'
+    eyes: EyeChain | None = None
+    camera: CameraIntrinsics | None = None
+    marker_dictionary: str = 'DICT_4X4_50'
+    marker_side_length: float = 0.03
+    markers: tuple[MarkerPlacement, ...] = ()
+    extra: dict[str, Any] = field(default_factory=dict, compare=False, repr=False)
+
+    @property
+    def n_joints(self) -> int:
+        return len(self.joint_names)
+
+    @property
+    def n_params(self) -> int:
+        return self.dh.size
+
+    def with_dh(self, dh: ArrayLike) -> 'ArmModel':
+        """The same robot with another DH table, shape (L, 4) or (4 L,)."""
+        table = np.array(dh, dtype=float).reshape(self.dh.shape)
+        _check_finite('dh', table)
+        return dataclasses.replace(self, dh=table)
+
+    def forward_kinematics(self, q: ArrayLike) -> NDArray[np.float64]:
+        """Hand pose(s) in the root frame: (4, 4) for q of shape (L,), (N, 4, 4) for (N, L)."""
+        return kinematics.forward_kinematics(self.base, self.dh, q)
+
+    def jacobian_dh(self, q: ArrayLike) -> NDArray[np.float64]:
+        """Pose Jacobian w.r.t. the DH parameters: (6, 4 L) or (N, 6, 4 L)."""
+        return kinematics.pose_jacobian_dh(self.base, self.dh, q)
+
+    def jacobian_joints(self, q: ArrayLike) -> NDArray[np.float64]:
+        """Pose Jacobian w.r.t. the joints: (6, L) or (N, 6, L)."""
+        return kinematics.pose_jacobian_joints(self.base, self.dh, q)
+
+    def camera_pose(self, eye: str = 'left', head: ArrayLike | None = None) -> NDArray[np.float64]:
+        """Optical frame of an eye in the root frame, (4, 4)."""
+        if self.eyes is None:
+            raise RobotDescriptionError(f'robot {self.name!r} has no eyes section')
+        return self.eyes.camera_pose(eye, head)
+
+    def within_limits(self, q: ArrayLike, tol: float = 1e-9) -> NDArray[np.bool_]:
+        """Whether each configuration lies inside the joint limits."""
+        q = np.asarray(q, dtype=float)
+        return np.all((q >= self.limits[:, 0] - tol) & (q <= self.limits[:, 1] + tol), axis=-1)
+
+
+# --------------------------------------------------------------------------------------------
+# Loading and validation
+
+
+def robot_path(name: str) -> Path:
+    """Path of a packaged robot description, e.g. ``robot_path("icub_right_arm")``."""
+    path = Path(str(resources.files('body_schema') / 'robots' / f'{name}.yaml'))
+    if not path.is_file():
+        available = sorted(p.stem for p in path.parent.glob('*.yaml'))
+        raise FileNotFoundError(f'no packaged robot {name!r}; available: {available}')
+    return path
+
+
+def load_robot(name_or_path: str | Path = 'icub_right_arm') -> ArmModel:
+    """Load and validate a robot description.
+
+    Parameters
+    ----------
+    name_or_path : str or Path
+        A packaged robot name (``"icub_right_arm"``) or the path of a YAML description.
+
+    Raises
+    ------
+    RobotDescriptionError
+        If a field is missing or has the wrong shape, unit or range; the message names it.
+    """
+    p = Path(name_or_path)
+    path = p if (p.suffix in ('.yaml', '.yml') or p.exists()) else robot_path(str(name_or_path))
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise RobotDescriptionError(f'{path}: not valid YAML: {exc}') from exc
+    if not isinstance(data, dict):
+        raise RobotDescriptionError(f'{path}: top level must be a mapping')
+    return robot_from_dict(data, source=str(path))
+
+
+def _check_finite(name: str, arr: NDArray[np.float64]) -> None:
+    if not np.all(np.isfinite(arr)):
+        raise RobotDescriptionError(f'{name}: contains NaN or infinite values: {arr.tolist()}')
+
+
+def _array(data: dict[str, Any], key: str, shape: tuple[int, ...], where: str) -> NDArray[np.float64]:
+    if key not in data:
+        raise RobotDescriptionError(f'{where}{key}: missing')
+    try:
+        arr = np.array(data[key], dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise RobotDescriptionError(f'{where}{key}: not numeric: {data[key]!r}') from exc
+    if arr.shape != shape:
+        raise RobotDescriptionError(f'{where}{key}: expected shape {shape}, got {arr.shape}')
+    _check_finite(where + key, arr)
+    return arr
+
+
+def _angles_to_rad(table: NDArray[np.float64], cols: list[int], scale: float) -> NDArray[np.float64]:
+    out = table.copy()
+    out[..., cols] *= scale
+    return out
+
+
+def _table(rows: Any, n_rows: int | None, where: str, scale: float) -> NDArray[np.float64]:
+    """A DH table in the file's angle unit -> (n, 4) in radians."""
+    try:
+        arr = np.array(rows, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise RobotDescriptionError(f'{where}: not numeric: {rows!r}') from exc
+    if arr.ndim != 2 or arr.shape[1] != 4 or (n_rows is not None and arr.shape[0] != n_rows):
+        want = f'({n_rows if n_rows is not None else "n"}, 4)'
+        raise RobotDescriptionError(f'{where}: expected a DH table of shape {want} '
+                                    f'(a, d, alpha, offset), got {arr.shape}')
+    _check_finite(where, arr)
+    if np.any(np.abs(arr[:, :2]) > 2.0):
+        raise RobotDescriptionError(f'{where}: link lengths a, d above 2 m are not plausible '
+                                    f'(are they in mm?): {arr[:, :2].tolist()}')
+    return _angles_to_rad(arr, [2, 3], scale)
+
+
+def _homogeneous(m: NDArray[np.float64], where: str) -> None:
+    r = m[:3, :3]
+    if not np.allclose(r @ r.T, np.eye(3), atol=1e-6) or not np.isclose(np.linalg.det(r), 1.0, atol=1e-6):
+        raise RobotDescriptionError(f'{where}: rotation part is not a proper rotation matrix')
+    if not np.allclose(m[3], [0, 0, 0, 1]):
+        raise RobotDescriptionError(f'{where}: last row must be [0, 0, 0, 1]')
+
+
+def _fixed_chain(h0: NDArray[np.float64], blocked: NDArray[np.float64]) -> NDArray[np.float64]:
+    return kinematics.forward_kinematics(h0, blocked, np.zeros(blocked.shape[0]))
+
+
+def robot_from_dict(data: dict[str, Any], source: str = '<dict>') -> ArmModel:
+    """Validate a parsed description (see :func:`load_robot`) and build the model."""
+    where = f'{source}: '
+    unit = data.get('angle_unit', 'rad')
+    if unit not in ('deg', 'rad'):
+        raise RobotDescriptionError(f"{where}angle_unit: must be 'deg' or 'rad', got {unit!r}")
+    scale = np.pi / 180.0 if unit == 'deg' else 1.0
+
+    h0 = _array(data, 'H0', (4, 4), where)
+    _homogeneous(h0, where + 'H0')
+    torso = _table(data.get('torso', []) or np.zeros((0, 4)), None, where + 'torso', scale)
+
+    joints = data.get('joints')
+    if not isinstance(joints, list) or not joints:
+        raise RobotDescriptionError(f'{where}joints: must be a non-empty list')
+    names, rows, lims = [], [], []
+    for i, j in enumerate(joints):
+        if not isinstance(j, dict) or 'name' not in j:
+            raise RobotDescriptionError(f'{where}joints[{i}]: needs name, dh and limits')
+        jw = f"{where}joints[{i}] ({j['name']}): "
+        rows.append(_array(j, 'dh', (4,), jw))
+        lims.append(_array(j, 'limits', (2,), jw))
+        names.append(str(j['name']))
+    if len(set(names)) != len(names):
+        raise RobotDescriptionError(f'{where}joints: duplicate joint names {names}')
+    n = len(names)
+    dh = _table(rows, n, where + 'joints[*].dh', scale)
+    limits = np.array(lims) * scale
+    bad = np.nonzero(limits[:, 0] >= limits[:, 1])[0]
+    if bad.size:
+        raise RobotDescriptionError(f'{where}joints[{bad[0]}] ({names[bad[0]]}).limits: '
+                                    f'min must be below max, got {np.array(lims)[bad[0]].tolist()}')
+    if np.any(np.abs(limits) > 2 * np.pi + 1e-9):
+        raise RobotDescriptionError(f'{where}joints[*].limits: beyond +-360 deg; check angle_unit')
+
+    box = _array(data, 'calibration_box', (n, 2), where) * scale if 'calibration_box' in data \
+        else limits.copy()
+    outside = np.nonzero((box[:, 0] < limits[:, 0] - 1e-9) | (box[:, 1] > limits[:, 1] + 1e-9)
+                         | (box[:, 0] >= box[:, 1]))[0]
+    if outside.size:
+        i = outside[0]
+        raise RobotDescriptionError(f'{where}calibration_box[{i}] ({names[i]}): must be a non-empty '
+                                    f'interval inside the joint limits')
+
+    eyes = _eyes(data['eyes'], h0, where + 'eyes.', scale) if 'eyes' in data else None
+    camera = None
+    if 'camera' in data:
+        c = data['camera']
+        try:
+            camera = CameraIntrinsics(int(c['width']), int(c['height']), float(c['fx']),
+                                      float(c['fy']), float(c['cx']), float(c['cy']))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise RobotDescriptionError(f'{where}camera: needs width, height, fx, fy, cx, cy ({exc})') from exc
+        if camera.width <= 0 or camera.height <= 0 or camera.fx <= 0 or camera.fy <= 0:
+            raise RobotDescriptionError(f'{where}camera: sizes and focal lengths must be positive')
+
+    dictionary, side, markers = 'DICT_4X4_50', 0.03, ()
+    if 'hand_markers' in data:
+        dictionary, side, markers = _markers(data['hand_markers'], where + 'hand_markers.', scale)
+
+    known = {'name', 'root_frame', 'angle_unit', 'H0', 'torso', 'joints', 'calibration_box',
+             'eyes', 'camera', 'hand_markers'}
+    return ArmModel(
+        name=str(data.get('name', Path(source).stem)),
+        joint_names=tuple(names),
+        dh=dh,
+        base=_fixed_chain(h0, torso),
+        limits=limits,
+        calibration_box=box,
+        root_frame=str(data.get('root_frame', 'root_link')),
+        eyes=eyes,
+        camera=camera,
+        marker_dictionary=dictionary,
+        marker_side_length=side,
+        markers=markers,
+        extra={k: v for k, v in data.items() if k not in known},
+    )
+
+
+def _eyes(e: Any, h0: NDArray[np.float64], where: str, scale: float) -> EyeChain:
+    if not isinstance(e, dict):
+        raise RobotDescriptionError(f'{where[:-1]}: must be a mapping')
+    heads = tuple(e.get('head_joints', ()))
+    if not heads:
+        raise RobotDescriptionError(f'{where}head_joints: missing')
+    torso = _table(e.get('torso', []) or np.zeros((0, 4)), None, where + 'torso', scale)
+    links = {eye: _table(e[eye], len(heads), where + eye, scale) for eye in ('left', 'right') if eye in e}
+    if not links:
+        raise RobotDescriptionError(f'{where}: needs a left and/or right eye chain')
+    head = _array(e, 'head_pose', (len(heads),), where) * scale
+    return EyeChain(base=_fixed_chain(h0, torso), links=links, head_joints=heads, head_pose=head)
+
+
+def _markers(m: Any, where: str, scale: float) -> tuple[str, float, tuple[MarkerPlacement, ...]]:
+    if not isinstance(m, dict):
+        raise RobotDescriptionError(f'{where[:-1]}: must be a mapping')
+    side = float(m.get('side_length', 0.0))
+    if not 0.0 < side < 0.5:
+        raise RobotDescriptionError(f'{where}side_length: must be in (0, 0.5) m, got {side}')
+    out, ids = [], set()
+    for i, mk in enumerate(m.get('markers', [])):
+        w = f'{where}markers[{i}].'
+        xyz = _array(mk, 'xyz', (3,), w)
+        rpy = _array(mk, 'rpy', (3,), w) * scale
+        mid = int(mk.get('id', -1))
+        if mid < 0 or mid in ids:
+            raise RobotDescriptionError(f'{w}id: must be a unique non-negative integer, got {mid}')
+        ids.add(mid)
+        t = np.eye(4)
+        t[:3, :3] = Rotation.from_euler('xyz', rpy).as_matrix()
+        t[:3, 3] = xyz
+        out.append(MarkerPlacement(str(mk.get('name', f'marker{mid}')), mid, t))
+    if not out:
+        raise RobotDescriptionError(f'{where}markers: at least one marker is needed')
+    return str(m.get('dictionary', 'DICT_4X4_50')), side, tuple(out)

@@ -1,0 +1,28 @@
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = 'body_schema'
+
+setup(
+    name=package_name,
+    version='0.1.0',
+    packages=find_packages(exclude=['test']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
+        ('share/' + package_name, ['package.xml']),
+        (f'share/{package_name}/robots', glob('body_schema/robots/*.yaml')),
+    ],
+    package_data={package_name: ['robots/*.yaml']},
+    install_requires=['setuptools'],
+    zip_safe=False,
+    maintainer='body-schema maintainers',
+    maintainer_email='maintainers@body-schema.invalid',
+    description='Pure-Python body-schema core (kinematics, EKF, noise, occlusion, acquisition, metrics)',
+    license='BSD-3-Clause',
+    extras_require={'test': ['pytest']},
+    entry_points={
+        'console_scripts': [
+        ],
+    },
+)

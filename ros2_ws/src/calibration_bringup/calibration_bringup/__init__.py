@@ -1,0 +1,1 @@
+"""Launch script support, parameter files, MCAP recorder, bag player, experiment runner and reports."""

@@ -1,0 +1,1 @@
+"""ArUco hand-pose detection with a pose-dependent measurement-noise model, as a ROS 2 node."""

@@ -1,0 +1,255 @@
+"""URDF export of a standard-DH chain (the simulator's arm, and later the calibrated models).
+
+Each DH link ``H_i = Rz(q_i + offset_i) Tz(d_i) Tx(a_i) Rx(alpha_i)`` becomes three URDF joints:
+
+* ``<joint>_offset`` (fixed): ``Rz(offset_i)``, parent frame -> link ``<joint>_zero``;
+* ``<joint>`` (revolute about z, with the joint limits): -> link ``<joint>_link``;
+* ``<joint>_dh`` (fixed): ``Tz(d_i) Tx(a_i) Rx(alpha_i)`` -> link ``<joint>_frame`` (DH frame i).
+
+The chain hangs from ``root_link`` through a fixed ``base`` transform (H0 times the blocked torso)
+to link ``arm_base``, and ends with an identity fixed joint to the hand link. Geometry is optional:
+pass :class:`Visual` lists keyed by link name, and extra rigidly attached links with
+:class:`FixedLink`. The string is plain URDF; nothing here imports a simulator.
+"""
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+from typing import Mapping, Sequence
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+
+__all__ = ['Visual', 'FixedLink', 'dh_chain_urdf', 'model_urdf', 'transform_to_xyz_rpy',
+           'xyz_rpy_to_transform']
+
+
+@dataclass(frozen=True)
+class Visual:
+    """One visual element of a link.
+
+    Attributes
+    ----------
+    shape : {'box', 'cylinder', 'sphere', 'mesh'}
+    size : tuple of float
+        box: full extents (x, y, z) [m]; cylinder: (radius, length) along local z; sphere:
+        (radius,); mesh: scale (x, y, z).
+    origin : ndarray, shape (4, 4)
+        Pose of the geometry in the link frame.
+    rgba : tuple of 4 floats
+    filename : str
+        Mesh file (mesh only).
+    """
+
+    shape: str
+    size: tuple[float, ...]
+    origin: NDArray[np.float64] = field(default_factory=lambda: np.eye(4))
+    rgba: tuple[float, float, float, float] = (0.8, 0.8, 0.8, 1.0)
+    filename: str = ''
+
+    def __post_init__(self) -> None:
+        want = {'box': 3, 'cylinder': 2, 'sphere': 1, 'mesh': 3}
+        if self.shape not in want:
+            raise ValueError(f'Visual.shape must be one of {sorted(want)}, got {self.shape!r}')
+        if len(self.size) != want[self.shape] or not all(np.isfinite(s) and s > 0 for s in self.size):
+            raise ValueError(f'Visual {self.shape} needs {want[self.shape]} positive sizes, got {self.size}')
+        if self.shape == 'mesh' and not self.filename:
+            raise ValueError('Visual mesh needs a filename')
+
+
+@dataclass(frozen=True)
+class FixedLink:
+    """A link rigidly attached to ``parent`` at ``parent_T_link`` (4, 4)."""
+
+    name: str
+    parent: str
+    parent_T_link: NDArray[np.float64]
+    visuals: tuple[Visual, ...] = ()
+
+
+def transform_to_xyz_rpy(t: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """URDF origin of a homogeneous transform: ``xyz`` and fixed-axis ``rpy`` (R = Rz Ry Rx).
+
+    Parameters
+    ----------
+    t : array_like, shape (4, 4)
+
+    Returns
+    -------
+    xyz, rpy : ndarray, shape (3,) each
+    """
+    t = np.asarray(t, dtype=float)
+    with warnings.catch_warnings():
+        # At pitch = +-90 deg scipy warns about gimbal lock but still returns an exact rotation.
+        warnings.simplefilter('ignore', UserWarning)
+        rpy = Rotation.from_matrix(t[:3, :3]).as_euler('xyz')
+    return t[:3, 3].copy(), rpy
+
+
+def xyz_rpy_to_transform(xyz: ArrayLike, rpy: ArrayLike) -> NDArray[np.float64]:
+    """Inverse of :func:`transform_to_xyz_rpy`, shape (4, 4)."""
+    t = np.eye(4)
+    t[:3, :3] = Rotation.from_euler('xyz', np.asarray(rpy, dtype=float)).as_matrix()
+    t[:3, 3] = np.asarray(xyz, dtype=float)
+    return t
+
+
+def _num(v: float) -> str:
+    return repr(float(v)) if v != 0 else '0'
+
+
+def _origin(t: ArrayLike) -> str:
+    xyz, rpy = transform_to_xyz_rpy(t)
+    return (f'<origin xyz="{" ".join(_num(v) for v in xyz)}" '
+            f'rpy="{" ".join(_num(v) for v in rpy)}"/>')
+
+
+def _visual_xml(v: Visual, i: int) -> str:
+    if v.shape == 'box':
+        geom = f'<box size="{" ".join(_num(s) for s in v.size)}"/>'
+    elif v.shape == 'cylinder':
+        geom = f'<cylinder radius="{_num(v.size[0])}" length="{_num(v.size[1])}"/>'
+    elif v.shape == 'sphere':
+        geom = f'<sphere radius="{_num(v.size[0])}"/>'
+    else:
+        geom = f'<mesh filename={quoteattr(v.filename)} scale="{" ".join(_num(s) for s in v.size)}"/>'
+    rgba = ' '.join(_num(c) for c in v.rgba)
+    return (f'    <visual>\n      {_origin(v.origin)}\n      <geometry>{geom}</geometry>\n'
+            f'      <material name="m{i}"><color rgba="{rgba}"/></material>\n    </visual>\n')
+
+
+def _link_xml(name: str, visuals: Sequence[Visual], counter: list[int], mass: float) -> str:
+    body = ''
+    if mass > 0:
+        # A tiny inertial keeps simulators from inventing 1 kg / unit inertia per link.
+        body += (f'    <inertial><mass value="{_num(mass)}"/>'
+                 f'<inertia ixx="1e-6" ixy="0" ixz="0" iyy="1e-6" iyz="0" izz="1e-6"/></inertial>\n')
+    for v in visuals:
+        body += _visual_xml(v, counter[0])
+        counter[0] += 1
+    return f'  <link name={quoteattr(name)}>\n{body}  </link>\n'
+
+
+def _fixed_xml(name: str, parent: str, child: str, t: ArrayLike) -> str:
+    return (f'  <joint name={quoteattr(name)} type="fixed">\n    <parent link={quoteattr(parent)}/>'
+            f'\n    <child link={quoteattr(child)}/>\n    {_origin(t)}\n  </joint>\n')
+
+
+def _rz(theta: float) -> NDArray[np.float64]:
+    c, s = np.cos(theta), np.sin(theta)
+    return np.array([[c, -s, 0, 0], [s, c, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]])
+
+
+def _dh_fixed(a: float, d: float, alpha: float) -> NDArray[np.float64]:
+    """``Tz(d) Tx(a) Rx(alpha)``."""
+    c, s = np.cos(alpha), np.sin(alpha)
+    return np.array([[1, 0, 0, a], [0, c, -s, 0], [0, s, c, d], [0, 0, 0, 1.0]])
+
+
+def dh_chain_urdf(dh: ArrayLike, joint_names: Sequence[str], limits: ArrayLike, *,
+                  base: ArrayLike | None = None, name: str = 'arm', root_link: str = 'root_link',
+                  hand_link: str = 'hand', visuals: Mapping[str, Sequence[Visual]] | None = None,
+                  extra_links: Sequence[FixedLink] = (), velocity: float = 1.0,
+                  effort: float = 10.0, link_mass: float = 0.0) -> str:
+    """URDF text of a standard-DH serial chain.
+
+    Parameters
+    ----------
+    dh : array_like, shape (L, 4)
+        ``(a, d, alpha, offset)`` per joint [m, m, rad, rad].
+    joint_names : sequence of str, length L
+    limits : array_like, shape (L, 2)
+        ``[lower, upper]`` [rad].
+    base : array_like, shape (4, 4), optional
+        ``root_link`` -> DH frame 0 (identity if omitted).
+    name : str
+        Robot name.
+    root_link, hand_link : str
+        Names of the first and last links.
+    visuals : mapping of link name -> sequence of Visual, optional
+        Geometry per link. Link names: ``root_link``, ``arm_base``, ``<joint>_zero``,
+        ``<joint>_link``, ``<joint>_frame``, ``hand_link`` and the ``extra_links``.
+    extra_links : sequence of FixedLink
+        Links rigidly attached to any earlier link (e.g. markers on the hand).
+    velocity, effort : float
+        Written into every ``<limit>`` [rad/s, N m].
+    link_mass : float
+        If positive, every link gets this mass and a tiny inertia.
+
+    Returns
+    -------
+    str
+        The URDF document.
+
+    Raises
+    ------
+    ValueError
+        If shapes disagree, a value is not finite, a limit interval is empty or a name repeats.
+    """
+    dh = np.asarray(dh, dtype=float)
+    limits = np.asarray(limits, dtype=float)
+    names = [str(n) for n in joint_names]
+    if dh.ndim != 2 or dh.shape[1] != 4:
+        raise ValueError(f'dh must have shape (L, 4), got {dh.shape}')
+    if len(names) != dh.shape[0] or limits.shape != (dh.shape[0], 2):
+        raise ValueError(f'{dh.shape[0]} DH rows need as many joint names (got {len(names)}) and '
+                         f'limits of shape ({dh.shape[0]}, 2) (got {limits.shape})')
+    if not (np.all(np.isfinite(dh)) and np.all(np.isfinite(limits))):
+        raise ValueError(f'dh and limits must be finite: dh={dh.tolist()}, limits={limits.tolist()}')
+    if np.any(limits[:, 0] >= limits[:, 1]):
+        i = int(np.argmax(limits[:, 0] >= limits[:, 1]))
+        raise ValueError(f'joint {names[i]!r}: lower limit {limits[i, 0]} not below upper {limits[i, 1]}')
+    base_t = np.eye(4) if base is None else np.asarray(base, dtype=float)
+    if base_t.shape != (4, 4):
+        raise ValueError(f'base must have shape (4, 4), got {base_t.shape}')
+    visuals = dict(visuals or {})
+    counter = [0]
+
+    links: list[str] = [root_link, 'arm_base']
+    xml = [f'<?xml version="1.0"?>\n<robot name={quoteattr(name)}>\n']
+    xml.append(_link_xml(root_link, visuals.get(root_link, ()), counter, link_mass))
+    xml.append(_link_xml('arm_base', visuals.get('arm_base', ()), counter, link_mass))
+    xml.append(_fixed_xml('arm_base_fixed', root_link, 'arm_base', base_t))
+    parent = 'arm_base'
+    for j, (a, d, alpha, offset), (lo, hi) in zip(names, dh, limits):
+        zero, moving, frame = f'{j}_zero', f'{j}_link', f'{j}_frame'
+        links += [zero, moving, frame]
+        for ln in (zero, moving, frame):
+            xml.append(_link_xml(ln, visuals.get(ln, ()), counter, link_mass))
+        xml.append(_fixed_xml(f'{j}_offset', parent, zero, _rz(offset)))
+        xml.append(f'  <joint name={quoteattr(j)} type="revolute">\n    <parent link={quoteattr(zero)}/>'
+                   f'\n    <child link={quoteattr(moving)}/>\n    <origin xyz="0 0 0" rpy="0 0 0"/>\n'
+                   f'    <axis xyz="0 0 1"/>\n    <limit lower="{_num(lo)}" upper="{_num(hi)}" '
+                   f'effort="{_num(effort)}" velocity="{_num(velocity)}"/>\n  </joint>\n')
+        xml.append(_fixed_xml(f'{j}_dh', moving, frame, _dh_fixed(a, d, alpha)))
+        parent = frame
+    links.append(hand_link)
+    xml.append(_link_xml(hand_link, visuals.get(hand_link, ()), counter, link_mass))
+    xml.append(_fixed_xml(f'{hand_link}_fixed', parent, hand_link, np.eye(4)))
+    for extra in extra_links:
+        if extra.parent not in links:
+            raise ValueError(f'extra link {extra.name!r}: unknown parent {extra.parent!r}')
+        links.append(extra.name)
+        xml.append(_link_xml(extra.name, list(visuals.get(extra.name, ())) + list(extra.visuals),
+                             counter, link_mass))
+        xml.append(_fixed_xml(f'{extra.name}_fixed', extra.parent, extra.name, extra.parent_T_link))
+    if len(set(links)) != len(links):
+        dup = sorted({ln for ln in links if links.count(ln) > 1})
+        raise ValueError(f'duplicate link names {dup}; rename the joints or extra links')
+    unknown = sorted(set(visuals) - set(links))
+    if unknown:
+        raise ValueError(f'visuals given for unknown links {unknown}')
+    xml.append('</robot>\n')
+    return ''.join(xml)
+
+
+def model_urdf(model: 'ArmModel', **kwargs) -> str:  # noqa: F821 (avoid an import cycle)
+    """URDF of an :class:`~body_schema.robot.ArmModel` (its DH table, base and limits).
+
+    Keyword arguments go to :func:`dh_chain_urdf`; ``name`` defaults to the model's name.
+    """
+    kwargs.setdefault('name', model.name)
+    kwargs.setdefault('root_link', model.root_frame)
+    return dh_chain_urdf(model.dh, model.joint_names, model.limits, base=model.base, **kwargs)

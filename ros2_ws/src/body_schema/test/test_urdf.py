@@ -1,0 +1,97 @@
+"""URDF export: the generated chain must reproduce the DH forward kinematics exactly."""
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+
+import numpy as np
+import pytest
+
+from body_schema import kinematics
+from body_schema.robot import load_robot
+from body_schema.sampling import perturb_dh, uniform_configs
+from body_schema.urdf import (FixedLink, Visual, dh_chain_urdf, model_urdf, transform_to_xyz_rpy,
+                              xyz_rpy_to_transform)
+
+
+def _rz(t: float) -> np.ndarray:
+    return xyz_rpy_to_transform([0, 0, 0], [0, 0, t])
+
+
+def urdf_fk(text: str, q: dict[str, float], link: str) -> np.ndarray:
+    """Pose of ``link`` in the root by walking the URDF's joints (revolute about their axis z)."""
+    root = ET.fromstring(text)
+    parent_of = {}
+    for j in root.findall('joint'):
+        o = j.find('origin')
+        t = xyz_rpy_to_transform([float(v) for v in o.get('xyz').split()],
+                                 [float(v) for v in o.get('rpy').split()])
+        if j.get('type') == 'revolute':
+            assert j.find('axis').get('xyz') == '0 0 1'
+            t = t @ _rz(q[j.get('name')])
+        parent_of[j.find('child').get('link')] = (j.find('parent').get('link'), t)
+    pose = np.eye(4)
+    while link in parent_of:
+        link, t = parent_of[link]
+        pose = t @ pose
+    return pose
+
+
+def test_rpy_round_trip_including_gimbal_lock() -> None:
+    rng = np.random.default_rng(0)
+    mats = [xyz_rpy_to_transform(rng.normal(size=3), rng.uniform(-3, 3, 3)) for _ in range(20)]
+    robot = load_robot()
+    mats += [robot.base, np.array([[0, -1, 0, 0], [0, 0, -1, 0], [1, 0, 0, 0], [0, 0, 0, 1.0]])]
+    for m in mats:
+        np.testing.assert_allclose(xyz_rpy_to_transform(*transform_to_xyz_rpy(m)), m, atol=1e-12)
+
+
+@pytest.mark.parametrize('perturbed', [False, True])
+def test_urdf_chain_matches_dh_forward_kinematics(perturbed: bool) -> None:
+    robot = load_robot()
+    dh = perturb_dh(robot.dh, 3) if perturbed else robot.dh
+    text = dh_chain_urdf(dh, robot.joint_names, robot.limits, base=robot.base)
+    qs = uniform_configs(robot.limits, 10, seed=1)
+    for q in qs:
+        want = kinematics.forward_kinematics(robot.base, dh, q)
+        got = urdf_fk(text, dict(zip(robot.joint_names, q)), 'hand')
+        np.testing.assert_allclose(got, want, atol=1e-12)
+
+
+def test_limits_names_and_extra_links_are_written() -> None:
+    robot = load_robot()
+    marker = FixedLink('palm_marker', 'hand', xyz_rpy_to_transform([0, 0, 0.01], [np.pi, 0, 0]),
+                       (Visual('box', (0.04, 0.04, 0.001)),))
+    text = model_urdf(robot, extra_links=[marker],
+                      visuals={'r_elbow_link': [Visual('cylinder', (0.03, 0.1))]})
+    root = ET.fromstring(text)
+    assert root.get('name') == robot.name
+    revolute = [j for j in root.findall('joint') if j.get('type') == 'revolute']
+    assert [j.get('name') for j in revolute] == list(robot.joint_names)
+    for j, (lo, hi) in zip(revolute, robot.limits):
+        assert float(j.find('limit').get('lower')) == pytest.approx(lo, abs=1e-15)
+        assert float(j.find('limit').get('upper')) == pytest.approx(hi, abs=1e-15)
+    q = dict(zip(robot.joint_names, np.radians([-30, 30, 0, 45, 0, 0, 0])))
+    np.testing.assert_allclose(urdf_fk(text, q, 'palm_marker'),
+                               urdf_fk(text, q, 'hand') @ marker.parent_T_link, atol=1e-12)
+    assert len(root.find("link[@name='r_elbow_link']").findall('visual')) == 1
+
+
+@pytest.mark.parametrize('kwargs, match', [
+    (dict(limits=np.zeros((7, 2))), 'lower limit'),
+    (dict(joint_names=['a'] * 6), 'joint names'),
+    (dict(visuals={'nope': [Visual('sphere', (0.1,))]}), 'unknown links'),
+    (dict(extra_links=[FixedLink('m', 'nowhere', np.eye(4))]), 'unknown parent'),
+])
+def test_bad_input_is_named(kwargs: dict, match: str) -> None:
+    robot = load_robot()
+    args = dict(dh=robot.dh, joint_names=robot.joint_names, limits=robot.limits)
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=match):
+        dh_chain_urdf(**args)
+
+
+def test_visual_validation() -> None:
+    with pytest.raises(ValueError, match='box needs 3'):
+        Visual('box', (0.1, 0.1))
+    with pytest.raises(ValueError, match='shape must be'):
+        Visual('cone', (0.1,))

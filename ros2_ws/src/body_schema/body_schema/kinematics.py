@@ -26,6 +26,7 @@ __all__ = [
     'chain_frames',
     'forward_kinematics',
     'pose_jacobian_dh',
+    'pose_jacobian_from_frames',
     'pose_jacobian_joints',
     'rotation_vector_error',
 ]
@@ -150,7 +151,21 @@ def pose_jacobian_dh(base: ArrayLike, dh: ArrayLike, q: ArrayLike) -> NDArray[np
         Rows: position (3) then base-frame rotation vector (3); columns: parameters in row-major
         DH-table order ``(a_0, d_0, alpha_0, offset_0, a_1, ...)``.
     """
-    frames = chain_frames(base, dh, q)
+    return pose_jacobian_from_frames(chain_frames(base, dh, q))
+
+
+def pose_jacobian_from_frames(frames: ArrayLike) -> NDArray[np.float64]:
+    """Pose Jacobian w.r.t. the DH parameters from the frames of :func:`chain_frames`.
+
+    Parameters
+    ----------
+    frames : array_like, shape (L + 1, 4, 4) or (N, L + 1, 4, 4)
+
+    Returns
+    -------
+    ndarray, shape (6, 4 L) or (N, 6, 4 L)
+    """
+    frames = np.asarray(frames, dtype=float)
     single = frames.ndim == 3
     f = frames[None] if single else frames
     p = f[:, -1, :3, 3][:, None, :]                     # (N, 1, 3) hand position

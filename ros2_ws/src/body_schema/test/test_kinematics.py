@@ -1,0 +1,78 @@
+"""Forward kinematics against the iCub reference points; Jacobians against central differences."""
+import numpy as np
+import pytest
+
+import body_schema
+from body_schema import kinematics
+from body_schema.sampling import uniform_configs
+
+
+@pytest.fixture(scope='module')
+def arm():
+    return body_schema.load_robot('icub_right_arm')
+
+
+def test_fk_reference_configurations(arm):
+    # DESIGN.md section 4 (robotology iKinFwd.cpp).
+    np.testing.assert_allclose(arm.forward_kinematics(np.zeros(7))[:3, 3], [-0.011, 0.094, -0.177], atol=1e-3)
+    q = np.radians([-30, 30, 0, 45, 0, 0, 0])
+    np.testing.assert_allclose(arm.forward_kinematics(q)[:3, 3], [-0.298, 0.211, 0.029], atol=1e-3)
+
+
+def test_left_eye_at_zero_head(arm):
+    np.testing.assert_allclose(arm.camera_pose('left', np.zeros(5))[:3, 3], [-0.063, -0.034, 0.341], atol=1e-3)
+    right = arm.camera_pose('right', np.zeros(5))[:3, 3]
+    assert right[1] == pytest.approx(0.034, abs=1e-3)      # eyes are 68 mm apart along y
+
+
+def test_batched_fk_matches_single(arm):
+    q = uniform_configs(arm.limits, 50, seed=3)
+    batch = arm.forward_kinematics(q)
+    assert batch.shape == (50, 4, 4)
+    for i in (0, 17, 49):
+        np.testing.assert_allclose(batch[i], arm.forward_kinematics(q[i]), atol=1e-12)
+    np.testing.assert_allclose(batch[:, :3, :3] @ np.swapaxes(batch[:, :3, :3], 1, 2),
+                               np.broadcast_to(np.eye(3), (50, 3, 3)), atol=1e-12)
+
+
+def _numeric_pose_jacobian(fun, x, eps=1e-6):
+    """Central differences of a pose-valued function: position and base-frame rotation vector."""
+    t0 = fun(x)
+    cols = []
+    for i in range(x.size):
+        dx = np.zeros_like(x)
+        dx[i] = eps
+        tp, tm = fun(x + dx), fun(x - dx)
+        dp = (tp[:3, 3] - tm[:3, 3]) / (2 * eps)
+        dw = (kinematics.rotation_vector_error(tp[:3, :3], t0[:3, :3])
+              - kinematics.rotation_vector_error(tm[:3, :3], t0[:3, :3])) / (2 * eps)
+        cols.append(np.concatenate([dp, dw]))
+    return np.array(cols).T
+
+
+@pytest.mark.parametrize('seed', [0, 1, 2])
+def test_dh_jacobian_matches_central_differences(arm, seed):
+    q = uniform_configs(arm.limits, 1, seed)[0]
+    x = arm.dh.ravel()
+    num = _numeric_pose_jacobian(lambda v: kinematics.forward_kinematics(arm.base, v.reshape(7, 4), q), x)
+    ana = arm.jacobian_dh(q)
+    assert ana.shape == (6, 28)
+    np.testing.assert_allclose(ana, num, atol=1e-7)
+
+
+def test_joint_jacobian_matches_central_differences(arm):
+    q = uniform_configs(arm.limits, 1, 7)[0]
+    num = _numeric_pose_jacobian(lambda v: arm.forward_kinematics(v), q)
+    np.testing.assert_allclose(arm.jacobian_joints(q), num, atol=1e-7)
+
+
+def test_batched_jacobian_matches_single(arm):
+    q = uniform_configs(arm.limits, 4, 11)
+    batch = arm.jacobian_dh(q)
+    assert batch.shape == (4, 6, 28)
+    np.testing.assert_allclose(batch[2], arm.jacobian_dh(q[2]), atol=1e-12)
+
+
+def test_wrong_configuration_shape_raises(arm):
+    with pytest.raises(ValueError, match=r'shape \(7,\)'):
+        arm.forward_kinematics(np.zeros(6))

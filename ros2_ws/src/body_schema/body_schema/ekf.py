@@ -17,7 +17,6 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from . import kinematics
@@ -45,7 +44,8 @@ def _check_cov(name: str, m: ArrayLike, n: int) -> NDArray[np.float64]:
     if m.shape != (n, n):
         raise InvalidInputError(f'{name} must have shape ({n}, {n}), got {m.shape}')
     _finite(name, m)
-    if not np.allclose(m, m.T, rtol=1e-8, atol=1e-12):
+    # max|M - M^T| against the scale of M: what allclose would say, at a fraction of its cost.
+    if np.max(np.abs(m - m.T), initial=0.0) > 1e-8 * np.max(np.abs(m), initial=0.0) + 1e-12:
         raise InvalidInputError(f'{name} is not symmetric')
     return m
 
@@ -245,8 +245,7 @@ class HandPoseModel:
         if z.shape != (4, 4):
             raise InvalidInputError(f'pose observation must be a 4x4 transform, got {z.shape}')
         _finite('pose observation', z)
-        rot = Rotation.from_matrix(z[:3, :3] @ hx[:3, :3].T).as_rotvec()
-        return np.concatenate([z[:3, 3] - hx[:3, 3], rot])
+        return np.concatenate([z[:3, 3] - hx[:3, 3], kinematics.rotation_vector_error(z[:3, :3], hx[:3, :3])])
 
     def update(self, ekf: ExtendedKalmanFilter, q: ArrayLike, pose: ArrayLike, R: ArrayLike,  # noqa: N803
                iterations: int = 1) -> bool:
@@ -254,5 +253,15 @@ class HandPoseModel:
         q = _finite('joint configuration', np.asarray(q, dtype=float))
         if q.shape != (self.n_links,):
             raise InvalidInputError(f'joint configuration must have shape ({self.n_links},), got {q.shape}')
-        return ekf.update(pose, self.jacobian, self.hx, R=R, args=(q,), hx_args=(q,),
-                          residual=self.residual, iterations=iterations)
+        # h and H are evaluated at the same state: compute the chain's frames once for both.
+        cache: dict[bytes, NDArray[np.float64]] = {}
+
+        def frames(x: NDArray[np.float64]) -> NDArray[np.float64]:
+            key = x.tobytes()
+            if key not in cache:
+                cache.clear()
+                cache[key] = kinematics.chain_frames(self.base, self.table(x), q)
+            return cache[key]
+
+        return ekf.update(pose, lambda x: kinematics.pose_jacobian_from_frames(frames(x)),
+                          lambda x: frames(x)[-1], R=R, residual=self.residual, iterations=iterations)

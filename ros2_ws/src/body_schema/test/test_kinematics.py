@@ -76,3 +76,17 @@ def test_batched_jacobian_matches_single(arm):
 def test_wrong_configuration_shape_raises(arm):
     with pytest.raises(ValueError, match=r'shape \(7,\)'):
         arm.forward_kinematics(np.zeros(6))
+
+
+@pytest.mark.parametrize('angle_deg', [0.0, 1e-7, 0.3, 45.0, 170.0, 179.95, 180.0])
+def test_so3_log_matches_scipy(angle_deg):
+    from scipy.spatial.transform import Rotation
+
+    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    w = np.radians(angle_deg) * axis
+    r = Rotation.from_rotvec(w).as_matrix()
+    got = kinematics.so3_log(r)
+    assert np.linalg.norm(got) == pytest.approx(np.radians(angle_deg), abs=1e-9)
+    if angle_deg < 180.0:                      # at exactly pi, w and -w are the same rotation
+        np.testing.assert_allclose(got, w, atol=1e-9)
+    np.testing.assert_allclose(Rotation.from_rotvec(got).as_matrix(), r, atol=1e-9)

@@ -1,0 +1,78 @@
+"""Benchmark of the body_schema core (``make bench``): median wall times on this machine.
+
+``python -m body_schema.bench`` prints a Markdown table of: batched FK of 1000 configurations,
+one pose Jacobian w.r.t. the 28 parameters, one EKF update (plain and iterated), one AL
+selection with DIRECT-L at 2000 evaluations and the cost of one evaluation inside it.
+"""
+from __future__ import annotations
+
+import sys
+import time
+from typing import Callable
+
+import numpy as np
+
+from . import ekf, load_robot, sampling
+from .acquisition import AcquisitionCost, JointSelector, SelectorConfig
+from .noise import PoseDependentNoise
+from .occlusion import OcclusionModel
+
+
+def _median_time(fn: Callable[[], object], repeat: int, warmup: int = 3) -> float:
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
+def measure() -> list[tuple[str, float, str, str]]:
+    """Rows ``(what, seconds, target, unit)``."""
+    arm = load_robot()
+    rng = np.random.default_rng(0)
+    q1000 = sampling.uniform_configs(arm.calibration_box, 1000, rng)
+    q = q1000[0]
+    dh = sampling.perturb_dh(arm.dh, rng)
+    P = sampling.initial_covariance(7)  # noqa: N806
+    model = ekf.HandPoseModel(arm.base, 7)
+    z = arm.forward_kinematics(q)
+    R = np.diag([1e-5] * 3 + [1e-3] * 3)  # noqa: N806
+
+    def one_update(iterations: int) -> Callable[[], object]:
+        def run() -> object:
+            f = ekf.ExtendedKalmanFilter.__new__(ekf.ExtendedKalmanFilter)
+            f.__dict__.update(filt.__dict__)     # same state every repeat, no constructor checks
+            return model.update(f, q, z, R, iterations=iterations)
+        return run
+
+    filt = ekf.ExtendedKalmanFilter(dh.ravel(), P)
+    occ = OcclusionModel(arm.calibration_box)
+    for t in sampling.uniform_configs(arm.calibration_box, 50, rng):   # a 50-iteration history
+        occ.add(t, bool(rng.random() < 0.7))
+    cost = AcquisitionCost(arm.base, dh, P, PoseDependentNoise(), arm.camera_pose('left'),
+                           arm.markers, occlusion=occ, penalty_a=0.01, penalty_b=10.0)
+    selector = JointSelector(arm.calibration_box, SelectorConfig(strategy='al', max_evals=2000))
+    return [
+        ('batched FK, 1000 configurations', _median_time(lambda: arm.forward_kinematics(q1000), 50), '<= 5 ms', 'ms'),
+        ('pose Jacobian w.r.t. 28 DH parameters', _median_time(lambda: arm.jacobian_dh(q), 500), '<= 100 us', 'us'),
+        ('EKF update (paper: 1 linearisation)', _median_time(one_update(1), 300), '<= 200 us', 'us'),
+        ('EKF update, iterated (5 linearisations)', _median_time(one_update(5), 100), '-', 'us'),
+        ('acquisition cost, one evaluation (50 occlusion samples)', _median_time(lambda: cost(q), 500), '-', 'us'),
+        ('AL selection, DIRECT-L, 2000 evaluations', _median_time(lambda: selector.select(cost), 5, 1), '<= 0.5 s', 's'),
+    ]
+
+
+def main(argv: list[str] | None = None) -> str:
+    rows = measure()
+    scale = {'ms': 1e3, 'us': 1e6, 's': 1.0}
+    lines = ['## body_schema', '', '| operation | median | target |', '|---|---|---|']
+    for what, sec, target, unit in rows:
+        lines.append(f'| {what} | {sec * scale[unit]:.3g} {unit} | {target} |')
+    return '\n'.join(lines) + '\n'
+
+
+if __name__ == '__main__':
+    print(main(sys.argv[1:]))

@@ -22,6 +22,7 @@ setup(
     extras_require={'test': ['pytest']},
     entry_points={
         'console_scripts': [
+            'detector_node = marker_detector.detector_node:main',
         ],
     },
 )

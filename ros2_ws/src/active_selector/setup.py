@@ -22,6 +22,7 @@ setup(
     extras_require={'test': ['pytest']},
     entry_points={
         'console_scripts': [
+            'selector_node = active_selector.selector_node:main',
         ],
     },
 )

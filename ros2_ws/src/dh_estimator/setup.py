@@ -22,6 +22,7 @@ setup(
     extras_require={'test': ['pytest']},
     entry_points={
         'console_scripts': [
+            'estimator_node = dh_estimator.estimator_node:main',
         ],
     },
 )

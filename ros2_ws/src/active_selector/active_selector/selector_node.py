@@ -1,0 +1,346 @@
+"""active_selector node: chooses where the arm goes next and drives the calibration loop.
+
+One iteration (DESIGN.md section 3): select a target with the strategy, command it, wait until
+``/joint_states`` shows the arm settled there (or give up: timeout), take the attempt's outcome
+(failure: the first ``/markers`` frame captured after settling is empty; success: the estimator's
+update at this configuration), feed the occlusion model, account the movement. After
+``iterations`` iterations it logs a summary and the process exits with status 0.
+
+Subscriptions
+-------------
+/joint_states : sensor_msgs/JointState
+/body_schema/estimate, /body_schema/covariance : std_msgs/Float64MultiArray (transient local)
+/camera/<eye>/pose : geometry_msgs/PoseStamped (transient local)
+/markers : geometry_msgs/PoseArray
+/body_schema/update_status : diagnostic_msgs/DiagnosticStatus
+
+Publications
+------------
+/arm/command : trajectory_msgs/JointTrajectory (reliable)
+/calibration/progress : std_msgs/String (reliable), one JSON object per iteration
+
+Parameters
+----------
+robot, strategy ('random' | 'al' | 'ucsal' | 'ccsal'), iterations, seed, gamma, delta,
+penalty_a, penalty_b, algorithm, max_evals, occlusion_length_scale, occlusion_a0, occlusion_b0,
+occlusion_mode ('paper' | 'expected'), noise_model ('pose_dependent' | 'constant'),
+pdn_a_pos, pdn_b_pos, pdn_a_rot, pdn_b_rot, cn_sigma_pos, cn_sigma_rot_deg, eye,
+settle_tolerance (rad), settle_timeout (s, sim), outcome_timeout (s, sim), progress_file,
+wait_report_period (s, wall).
+"""
+from __future__ import annotations
+
+import enum
+import json
+import sys
+import time
+from collections import deque
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import rclpy
+from builtin_interfaces.msg import Duration
+from diagnostic_msgs.msg import DiagnosticStatus
+from geometry_msgs.msg import PoseArray, PoseStamped
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.clock import Clock, ClockType
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray, String
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+from body_schema import load_robot
+from body_schema.acquisition import DIRECT_ALGORITHMS, SelectorConfig
+from body_schema.noise import ConstantNoise, PoseDependentNoise
+from dh_estimator.estimator_node import pose_msg_to_matrix
+from dh_estimator.messages import MessageFormatError, msg_to_covariance, msg_to_table
+
+from .planner import Planner, PlannerSettings
+
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+_PDN = PoseDependentNoise()
+
+
+class Phase(enum.Enum):
+    WAITING = 'waiting for inputs'
+    MOVING = 'moving'
+    AWAITING_OUTCOME = 'awaiting outcome'
+    DONE = 'done'
+
+
+def _float(desc: str, lo: float, hi: float) -> ParameterDescriptor:
+    return ParameterDescriptor(description=desc,
+                               floating_point_range=[FloatingPointRange(from_value=lo, to_value=hi)])
+
+
+def _int(desc: str, lo: int, hi: int) -> ParameterDescriptor:
+    return ParameterDescriptor(description=desc, integer_range=[IntegerRange(from_value=lo, to_value=hi)])
+
+
+def _stamp(s: Any) -> float:
+    return s.sec + 1e-9 * s.nanosec
+
+
+class SelectorNode(Node):
+    """Drives the loop; the decisions are in :class:`~active_selector.planner.Planner`."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__('active_selector', **kwargs)
+        p = self.declare_parameter
+        p('robot', 'icub_right_arm', ParameterDescriptor(description='Packaged robot name or YAML path'))
+        p('strategy', 'al', ParameterDescriptor(description="'random', 'al', 'ucsal' or 'ccsal'"))
+        p('iterations', 50, _int('Iterations (measurement attempts) of the run', 1, 100000))
+        p('seed', 0, _int('Seed of the random strategy and randomised DIRECT', 0, 2**31 - 1))
+        p('gamma', 0.01, _float('UCSAL weight of the normalised L1 movement', 0.0, 1e9))
+        p('delta', 0.25, _float('CCSAL half-width of the box around the previous configuration (normalised)', 1e-6, 1.0))
+        p('penalty_a', 0.0, _float('Weight a of the a*arctan(b*p_x) penalty on hands behind the body', 0.0, 1e6))
+        p('penalty_b', 10.0, _float('Slope b of the arctan penalty [1/m]', 0.0, 1e6))
+        p('algorithm', 'DIRECT_L', ParameterDescriptor(description=f'NLopt algorithm: {sorted(DIRECT_ALGORITHMS)}'))
+        p('max_evals', 2000, _int('Cost evaluations per selection', 10, 10**7))
+        p('occlusion_length_scale', 0.1, _float('Occlusion kernel length scale (normalised joints)', 1e-4, 10.0))
+        p('occlusion_a0', 1.0, _float('Beta prior successes', 1e-6, 1e6))
+        p('occlusion_b0', 1.0, _float('Beta prior failures', 1e-6, 1e6))
+        p('occlusion_mode', 'paper', ParameterDescriptor(description="'paper' (C0 / eta) or 'expected'"))
+        p('noise_model', 'pose_dependent', ParameterDescriptor(description="R predicted by 'pose_dependent' or 'constant'"))
+        p('pdn_a_pos', _PDN.a_pos, _float('Pose-dependent position variance per r^2', 0.0, 1.0))
+        p('pdn_b_pos', _PDN.b_pos, _float('Pose-dependent position variance per (phi-45)^2', 0.0, 1.0))
+        p('pdn_a_rot', _PDN.a_rot, _float('Pose-dependent orientation variance per r^2', 0.0, 10.0))
+        p('pdn_b_rot', _PDN.b_rot, _float('Pose-dependent orientation variance per (phi-45)^2', 0.0, 1.0))
+        p('cn_sigma_pos', 0.01, _float('CN position standard deviation [m]', 1e-6, 1.0))
+        p('cn_sigma_rot_deg', 3.0, _float('CN orientation standard deviation [deg]', 1e-4, 90.0))
+        p('eye', 'left', ParameterDescriptor(description='Which eye the detector uses: left or right'))
+        p('settle_tolerance', 0.002, _float('Max joint error counted as arrived [rad]', 1e-6, 0.5))
+        p('settle_timeout', 30.0, _float('Sim seconds to reach a target before giving up', 0.1, 1e4))
+        p('outcome_timeout', 5.0, _float('Sim seconds after settling to get an outcome', 0.1, 1e4))
+        p('progress_file', '', ParameterDescriptor(description='JSON-lines file, one object per iteration'))
+        p('wait_report_period', 2.0, _float('Wall seconds between "waiting for" reports', 0.1, 3600.0))
+
+        gp = lambda name: self.get_parameter(name).value  # noqa: E731
+        self.model = load_robot(gp('robot'))
+        noise = (ConstantNoise(gp('cn_sigma_pos'), np.radians(gp('cn_sigma_rot_deg')))
+                 if gp('noise_model') == 'constant' else
+                 PoseDependentNoise(gp('pdn_a_pos'), gp('pdn_b_pos'), gp('pdn_a_rot'), gp('pdn_b_rot'),
+                                    _PDN.floor_pos, _PDN.floor_rot))
+        if gp('noise_model') not in ('pose_dependent', 'constant'):
+            raise ValueError(f"noise_model must be 'pose_dependent' or 'constant', got {gp('noise_model')!r}")
+        config = SelectorConfig(strategy=gp('strategy'), gamma=gp('gamma'), delta=gp('delta'),
+                                algorithm=gp('algorithm'), max_evals=gp('max_evals'), seed=gp('seed'))
+        self.planner = Planner(self.model, noise, PlannerSettings(
+            selector=config, penalty_a=gp('penalty_a'), penalty_b=gp('penalty_b'),
+            occlusion_length_scale=gp('occlusion_length_scale'), occlusion_a0=gp('occlusion_a0'),
+            occlusion_b0=gp('occlusion_b0'), occlusion_mode=gp('occlusion_mode')))
+        self.iterations = gp('iterations')
+        self.settle_tol = gp('settle_tolerance')
+        self.settle_timeout = gp('settle_timeout')
+        self.outcome_timeout = gp('outcome_timeout')
+        self.progress_file = Path(gp('progress_file')) if gp('progress_file') else None
+        if self.progress_file is not None:
+            self.progress_file.parent.mkdir(parents=True, exist_ok=True)
+            self.progress_file.write_text('')
+
+        self.phase = Phase.WAITING
+        self.q: np.ndarray | None = None
+        self.q_time = 0.0
+        self.q_prev: np.ndarray | None = None
+        self.dh: np.ndarray | None = None
+        self.P: np.ndarray | None = None
+        self.camera_pose: np.ndarray | None = None
+        self.target: np.ndarray | None = None
+        self.reached: np.ndarray | None = None
+        self.selection_seconds = 0.0
+        self.t_command = 0.0
+        self.t_settled = 0.0
+        self.detected: bool | None = None
+        self.statuses: deque[DiagnosticStatus] = deque(maxlen=50)
+        self._last_wait_report = 0.0
+        self._warned: set[str] = set()
+
+        self.pub_cmd = self.create_publisher(JointTrajectory, '/arm/command', 10)
+        self.pub_progress = self.create_publisher(String, '/calibration/progress', 10)
+        self.create_subscription(JointState, '/joint_states', self.on_joint_state, qos_profile_sensor_data)
+        self.create_subscription(Float64MultiArray, '/body_schema/estimate', self.on_estimate, LATCHED)
+        self.create_subscription(Float64MultiArray, '/body_schema/covariance', self.on_covariance, LATCHED)
+        self.create_subscription(PoseStamped, f"/camera/{gp('eye')}/pose", self.on_camera_pose, LATCHED)
+        self.create_subscription(PoseArray, '/markers', self.on_markers, 10)
+        self.create_subscription(DiagnosticStatus, '/body_schema/update_status', self.on_status, 10)
+        # A steady (wall) timer: reports and timeouts must run even when sim time stands still.
+        self.create_timer(0.05, self.step, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self.get_logger().info(f'{config.strategy.value} run of {self.iterations} iterations '
+                               f'(DIRECT {config.algorithm}, {config.max_evals} evaluations)')
+
+    # ---------------------------------------------------------------------------------- inputs
+
+    @property
+    def done(self) -> bool:
+        return self.phase is Phase.DONE
+
+    @property
+    def waiting_for(self) -> list[str]:
+        """Inputs still missing before the first selection."""
+        missing = []
+        if self.q is None:
+            missing.append('/joint_states')
+        if self.planner.strategy.value != 'random':
+            if self.dh is None:
+                missing.append('/body_schema/estimate')
+            if self.P is None:
+                missing.append('/body_schema/covariance')
+            if self.camera_pose is None:
+                missing.append(f"/camera/{self.get_parameter('eye').value}/pose")
+        return missing
+
+    def _warn_once(self, key: str, text: str) -> None:
+        if key not in self._warned:
+            self._warned.add(key)
+            self.get_logger().warning(text)
+
+    def now(self) -> float:
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    def on_joint_state(self, msg: JointState) -> None:
+        names = list(msg.name)
+        try:
+            q = np.array([msg.position[names.index(n)] for n in self.model.joint_names], dtype=float)
+        except (ValueError, IndexError):
+            self._warn_once('names', f'/joint_states does not carry all of {self.model.joint_names}; ignored')
+            return
+        if not np.all(np.isfinite(q)):
+            return
+        self.q_prev, self.q, self.q_time = self.q, q, _stamp(msg.header.stamp)
+        if self.phase is Phase.MOVING:
+            self._check_settled()
+
+    def on_estimate(self, msg: Float64MultiArray) -> None:
+        try:
+            self.dh = msg_to_table(msg, self.model.n_joints)
+        except MessageFormatError as exc:
+            self.get_logger().warning(f'/body_schema/estimate ignored: {exc}')
+
+    def on_covariance(self, msg: Float64MultiArray) -> None:
+        try:
+            self.P = msg_to_covariance(msg, self.model.n_params)
+        except MessageFormatError as exc:
+            self.get_logger().warning(f'/body_schema/covariance ignored: {exc}')
+
+    def on_camera_pose(self, msg: PoseStamped) -> None:
+        try:
+            self.camera_pose = pose_msg_to_matrix(msg.pose)
+        except ValueError as exc:
+            self.get_logger().warning(f'camera pose ignored: {exc}')
+
+    def on_markers(self, msg: PoseArray) -> None:
+        if self.phase is Phase.AWAITING_OUTCOME and self.detected is None \
+                and _stamp(msg.header.stamp) >= self.t_settled:
+            self.detected = len(msg.poses) > 0
+            if not self.detected:
+                self._finish_iteration('failed', 'no marker detected after settling')
+                return
+            self._check_status()
+
+    def on_status(self, msg: DiagnosticStatus) -> None:
+        self.statuses.append(msg)
+        if self.phase is Phase.AWAITING_OUTCOME and self.detected:
+            self._check_status()
+
+    # ---------------------------------------------------------------------------------- loop
+
+    def step(self) -> None:
+        """Periodic: start iterations, report what is missing, enforce timeouts."""
+        if self.phase is Phase.WAITING:
+            missing = self.waiting_for
+            if missing:
+                t = time.monotonic()
+                if t - self._last_wait_report >= self.get_parameter('wait_report_period').value:
+                    self._last_wait_report = t
+                    self.get_logger().info(f'waiting for {", ".join(missing)} before selecting')
+                return
+            if self.planner.start is None:
+                self.planner.start = self.q.copy()
+            self._select_and_command()
+        elif self.phase is Phase.MOVING and self.now() - self.t_command > self.settle_timeout:
+            err = np.abs(self.q - self.target)
+            j = int(np.argmax(err))
+            self._finish_iteration('unreachable', f'target not reached within {self.settle_timeout:.1f} s: '
+                                   f'{self.model.joint_names[j]} is {np.degrees(err[j]):.2f} deg away')
+        elif self.phase is Phase.AWAITING_OUTCOME and self.now() - self.t_settled > self.outcome_timeout:
+            why = ('no /markers frame after settling' if self.detected is None
+                   else 'markers seen but no estimator update for this configuration')
+            self._finish_iteration('timeout', why)
+
+    def _select_and_command(self) -> None:
+        sel = self.planner.select(self.dh, self.P, self.camera_pose)
+        self.target = np.clip(sel.theta, self.model.limits[:, 0], self.model.limits[:, 1])
+        self.selection_seconds = sel.seconds
+        traj = JointTrajectory()
+        traj.header.stamp = self.get_clock().now().to_msg()
+        traj.joint_names = list(self.model.joint_names)
+        traj.points = [JointTrajectoryPoint(positions=self.target.tolist(), time_from_start=Duration())]
+        self.phase = Phase.MOVING
+        self.t_command = self.now()
+        self.detected = None
+        self.pub_cmd.publish(traj)
+        self._check_settled()
+
+    def _check_settled(self) -> None:
+        if self.q is None or self.q_prev is None or self.q_time < self.t_command:
+            return
+        if np.max(np.abs(self.q - self.target)) <= self.settle_tol and \
+                np.max(np.abs(self.q - self.q_prev)) <= self.settle_tol * 0.1:
+            self.phase = Phase.AWAITING_OUTCOME
+            self.t_settled = self.q_time
+            self.reached = self.q.copy()
+
+    def _check_status(self) -> None:
+        for s in reversed(self.statuses):
+            kv = {v.key: v.value for v in s.values}
+            if kv.get('outcome') not in ('accepted', 'rejected'):
+                continue
+            q = np.array([float(v) for v in kv.get('joints', '').split()])
+            if q.shape == self.reached.shape and np.max(np.abs(q - self.reached)) <= 2 * self.settle_tol:
+                self._finish_iteration(kv['outcome'], s.message)
+                return
+
+    def _finish_iteration(self, outcome: str, why: str) -> None:
+        reached = self.reached if self.phase is Phase.AWAITING_OUTCOME else self.q.copy()
+        a = self.planner.record(self.target, reached, outcome, bool(self.detected), self.selection_seconds)
+        msg = (f'iteration {a.iteration}/{self.iterations} {self.planner.strategy.value}: '
+               f'target [{" ".join(f"{v:.1f}" for v in np.degrees(a.target))}] deg, outcome {outcome} '
+               f'({why}), movement {a.movement_deg:.1f} deg, selection {a.selection_seconds:.2f} s')
+        (self.get_logger().info if a.detected else self.get_logger().warning)(msg)
+        record = {'iteration': a.iteration, 'strategy': self.planner.strategy.value, 'outcome': outcome,
+                  'detected': a.detected, 'reason': why, 'target_deg': np.degrees(a.target).tolist(),
+                  'reached_deg': np.degrees(a.reached).tolist(), 'movement_deg': a.movement_deg,
+                  'selection_s': a.selection_seconds, 'discarded': self.planner.discarded,
+                  'sim_time': self.now()}
+        self.pub_progress.publish(String(data=json.dumps(record)))
+        if self.progress_file is not None:
+            with self.progress_file.open('a') as f:
+                f.write(json.dumps(record) + '\n')
+        if a.iteration >= self.iterations:
+            self.phase = Phase.DONE
+            self.get_logger().info(f'done: {a.iteration} iterations, movement {a.movement_deg:.1f} deg, '
+                                   f'{self.planner.discarded} discarded')
+        else:
+            self.phase = Phase.WAITING
+
+
+def main(args: list[str] | None = None) -> None:
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = SelectorNode()
+        while rclpy.ok() and not node.done:
+            rclpy.spin_once(node, timeout_sec=0.1)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main(sys.argv)

@@ -1,0 +1,96 @@
+"""The estimator node in-process: bad input is rejected with the state unchanged; checkpoints resume."""
+import numpy as np
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from rclpy.parameter import Parameter
+from scipy.spatial.transform import Rotation
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+
+import body_schema
+from dh_estimator.estimator_node import EstimatorNode
+from dh_estimator.messages import msg_to_table
+
+ARM = body_schema.load_robot()
+
+
+def _joint_state(t, q, names=ARM.joint_names):
+    m = JointState(name=list(names), position=[float(v) for v in q])
+    m.header.stamp.sec, m.header.stamp.nanosec = int(t), int(round((t % 1) * 1e9))
+    return m
+
+
+def _hand_pose(t, pose, cov=1e-4):
+    m = PoseWithCovarianceStamped()
+    m.header.stamp.sec, m.header.stamp.nanosec = int(t), int(round((t % 1) * 1e9))
+    m.header.frame_id = 'root_link'
+    m.pose.pose.position.x, m.pose.pose.position.y, m.pose.pose.position.z = pose[:3, 3].tolist()
+    x, y, z, w = Rotation.from_matrix(pose[:3, :3]).as_quat()
+    m.pose.pose.orientation.x, m.pose.pose.orientation.y, m.pose.pose.orientation.z, m.pose.pose.orientation.w = x, y, z, w
+    m.pose.covariance = (np.eye(6) * cov).ravel().tolist()
+    return m
+
+
+def _setup(ros, **params):
+    overrides = [Parameter(k, value=v) for k, v in {'initial_seed': 4, 'export_on_shutdown': False, **params}.items()]
+    node = ros.add(EstimatorNode(context=ros.context, parameter_overrides=overrides))
+    probe = ros.node('probe')
+    js = probe.create_publisher(JointState, '/joint_states', 10)
+    hp = probe.create_publisher(PoseWithCovarianceStamped, '/hand_pose', 10)
+    estimates = []
+    from dh_estimator.estimator_node import LATCHED
+    probe.create_subscription(Float64MultiArray, '/body_schema/estimate', estimates.append, LATCHED)
+    ros.spin_until(lambda: js.get_subscription_count() and hp.get_subscription_count() and estimates,
+                   10.0, 'discovery and the initial estimate')
+    return node, js, hp, estimates
+
+
+def _feed_static(ros, js, q, t0, t1):
+    for t in np.arange(t0, t1, 0.02):
+        js.publish(_joint_state(t, q))
+        ros.executor.spin_once(timeout_sec=0.001)
+    ros.spin_for(0.2)
+
+
+def test_update_then_nan_and_bad_names_leave_state(ros):
+    node, js, hp, estimates = _setup(ros)
+    q = np.mean(ARM.calibration_box, axis=1)
+    _feed_static(ros, js, q, 0.0, 1.0)
+    hp.publish(_hand_pose(0.9, ARM.forward_kinematics(q)))
+    ros.spin_until(lambda: node.estimator.counters['updates'] == 1, 5.0, 'one EKF update')
+    ros.spin_until(lambda: len(estimates) >= 2, 5.0, 'estimate after the update')
+    np.testing.assert_allclose(msg_to_table(estimates[-1]), node.estimator.dh)
+    x, P = node.estimator.ekf.x.copy(), node.estimator.ekf.P.copy()
+
+    # The same static configuration again: not new evidence.
+    hp.publish(_hand_pose(0.95, ARM.forward_kinematics(q)))
+    # NaN in the observed pose at a new configuration.
+    q2 = q + 0.2
+    _feed_static(ros, js, q2, 1.0, 2.0)
+    bad = ARM.forward_kinematics(q2)
+    bad[0, 3] = np.nan
+    hp.publish(_hand_pose(1.9, bad))
+    # Joint states with wrong names, and NaN positions, then a pose that needs them.
+    js.publish(_joint_state(2.1, q2 + 0.3, names=[f'joint{i}' for i in range(7)]))
+    js.publish(_joint_state(2.2, np.full(7, np.nan)))
+    ros.spin_until(lambda: node.estimator.counters['duplicates'] == 1, 5.0, 'duplicate counted')
+    ros.spin_for(0.5)
+    np.testing.assert_array_equal(node.estimator.ekf.x, x)
+    np.testing.assert_array_equal(node.estimator.ekf.P, P)
+    assert node.estimator.counters['updates'] == 1
+    assert node.buffer.latest[0] < 2.05                      # bad joint states never entered
+
+
+def test_restart_from_checkpoint_is_identical(ros, tmp_path):
+    ckpt = tmp_path / 'estimator.npz'
+    node, js, hp, _ = _setup(ros, checkpoint_path=str(ckpt))
+    for k, q in enumerate(body_schema.sampling.uniform_configs(ARM.calibration_box, 3, 2)):
+        _feed_static(ros, js, q, 2.0 * k, 2.0 * k + 1.0)
+        hp.publish(_hand_pose(2.0 * k + 0.9, ARM.forward_kinematics(q)))
+        ros.spin_until(lambda: node.estimator.counters['updates'] == k + 1, 5.0, f'update {k + 1}')
+    assert ckpt.exists()
+    restarted = ros.add(EstimatorNode(context=ros.context, parameter_overrides=[
+        Parameter('initial_seed', value=99), Parameter('checkpoint_path', value=str(ckpt)),
+        Parameter('export_on_shutdown', value=False)]))
+    np.testing.assert_array_equal(restarted.estimator.ekf.x, node.estimator.ekf.x)
+    np.testing.assert_array_equal(restarted.estimator.ekf.P, node.estimator.ekf.P)
+    assert restarted.estimator.counters == node.estimator.counters

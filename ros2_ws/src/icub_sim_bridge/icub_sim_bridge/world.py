@@ -1,0 +1,392 @@
+"""The PyBullet world: iCub right arm built from a DH table, an ArUco-marked hand, eye cameras.
+
+Pure module (no rclpy). :class:`SimWorld` owns one ``BulletClient`` in DIRECT mode, so several
+worlds coexist in one process. The arm is generated as URDF by :mod:`body_schema.urdf` from the
+DH table it is given (the nominal description's, or a "real robot" that differs from it), with
+geometry that looks like an iCub arm: torso and head for context (static), upper arm, forearm and
+a 7 x 5.5 x 2.5 cm hand whose palm and back carry ArUco markers (textured quads with a white quiet
+zone) exactly where the robot description's ``hand_markers`` says they are.
+
+The arm is kinematic: :meth:`SimWorld.set_joint_positions` places it exactly, :meth:`SimWorld.step`
+advances the (gravity-free) physics by one fixed step. :meth:`SimWorld.render` draws an image
+with TinyRenderer for any camera pose and intrinsics; the image obeys the pinhole model ``K``
+exactly (see :mod:`icub_sim_bridge.camera`).
+"""
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+import pybullet as p
+from numpy.typing import ArrayLike, NDArray
+from pybullet_utils import bullet_client
+
+from body_schema.robot import ArmModel, CameraIntrinsics, MarkerPlacement
+from body_schema.urdf import FixedLink, Visual, dh_chain_urdf, xyz_rpy_to_transform
+
+from . import camera as cam
+
+__all__ = ['HAND_SIZE', 'MarkerSpec', 'SimWorld', 'marker_texture', 'aruco_dictionary']
+
+#: Palm box extents in the hand frame [m]: x toward the fingers, y across, z palm thickness.
+HAND_SIZE = (0.07, 0.055, 0.025)
+
+# Colours: iCub-like white shells over dark grey joints.
+_WHITE = (0.92, 0.92, 0.9, 1.0)
+_GREY = (0.35, 0.35, 0.38, 1.0)
+_SKIN = (0.75, 0.72, 0.68, 1.0)
+_FLOOR = (0.45, 0.42, 0.38, 1.0)
+
+# Link radii [m] of the segment each joint's link carries (the segment is drawn in <joint>_link).
+_LINK_RADIUS = {
+    'r_shoulder_pitch': 0.03,   # shoulder girdle, across the chest
+    'r_shoulder_roll': 0.03,
+    'r_shoulder_yaw': 0.032,    # upper arm
+    'r_elbow': 0.028,
+    'r_wrist_prosup': 0.026,    # forearm
+    'r_wrist_pitch': 0.02,
+    'r_wrist_yaw': 0.015,       # drawn by the hand itself
+}
+
+_QUAD_OBJ = """# unit square in z = 0, normal +z; uv (0,0) at (-0.5,-0.5)
+v -0.5 -0.5 0
+v 0.5 -0.5 0
+v 0.5 0.5 0
+v -0.5 0.5 0
+vt 0 0
+vt 1 0
+vt 1 1
+vt 0 1
+vn 0 0 1
+f 1/1/1 2/2/1 3/3/1
+f 1/1/1 3/3/1 4/4/1
+"""
+
+
+def aruco_dictionary(name: str):
+    """The cv2.aruco predefined dictionary called ``name`` (e.g. ``'DICT_4X4_50'``)."""
+    import cv2
+
+    code = getattr(cv2.aruco, name, None)
+    if not name.startswith('DICT_') or not isinstance(code, int):
+        raise ValueError(f'unknown ArUco dictionary {name!r}; expected a cv2.aruco DICT_* name')
+    return cv2.aruco.getPredefinedDictionary(code)
+
+
+def marker_texture(dictionary: str, marker_id: int, cell_px: int = 24,
+                   quiet_cells: int = 1) -> NDArray[np.uint8]:
+    """Printed marker image: the ArUco square with a white quiet zone around it.
+
+    Parameters
+    ----------
+    dictionary : str
+        cv2.aruco dictionary name.
+    marker_id : int
+    cell_px : int
+        Pixels per marker cell.
+    quiet_cells : int
+        Width of the white margin [cells].
+
+    Returns
+    -------
+    ndarray, shape (S, S), uint8
+        ``S = (bits + 2 + 2 quiet_cells) cell_px``; row 0 is the top of the printed marker.
+    """
+    import cv2
+
+    d = aruco_dictionary(dictionary)
+    n_markers = d.bytesList.shape[0]
+    if not 0 <= marker_id < n_markers:
+        raise ValueError(f'marker id {marker_id} not in {dictionary} (0..{n_markers - 1})')
+    cells = d.markerSize + 2
+    img = cv2.aruco.generateImageMarker(d, int(marker_id), cells * cell_px, borderBits=1)
+    pad = quiet_cells * cell_px
+    return np.pad(img, pad, constant_values=255)
+
+
+@dataclass(frozen=True)
+class MarkerSpec:
+    """A marker as the world draws it: placement, id, dictionary, black-square side [m]."""
+
+    placement: MarkerPlacement
+    dictionary: str
+    side_length: float
+    quiet_cells: int = 1
+
+    @property
+    def quad_side(self) -> float:
+        """Side of the printed quad including the quiet zone [m]."""
+        bits = aruco_dictionary(self.dictionary).markerSize
+        return self.side_length * (bits + 2 + 2 * self.quiet_cells) / (bits + 2)
+
+    def corners_in_marker(self) -> NDArray[np.float64]:
+        """The black square's corners in ArUco order (TL, TR, BR, BL), shape (4, 3)."""
+        s = self.side_length / 2
+        return np.array([[-s, s, 0], [s, s, 0], [s, -s, 0], [-s, -s, 0]])
+
+
+def _segment_visuals(a: float, d: float, radius: float, rgba: tuple) -> list[Visual]:
+    """Cylinders along the DH link: origin -> (0, 0, d) -> (a, 0, d), in the joint's moving frame."""
+    out = [Visual('sphere', (radius * 1.05,), rgba=_GREY)]
+    if abs(d) > 1e-4:
+        out.append(Visual('cylinder', (radius, abs(d)), xyz_rpy_to_transform([0, 0, d / 2], [0, 0, 0]), rgba))
+    if abs(a) > 1e-4:
+        out.append(Visual('cylinder', (radius, abs(a)),
+                          xyz_rpy_to_transform([a / 2, 0, d], [0, np.pi / 2, 0]), rgba))
+    return out
+
+
+def _hand_visuals(wrist_a: float) -> list[Visual]:
+    """Palm, fingers, thumb and wrist in the hand frame (palm face at z = 0, facing +z)."""
+    lx, ly, lz = HAND_SIZE
+    box = lambda size, xyz, rgba=_SKIN: Visual('box', size, xyz_rpy_to_transform(xyz, [0, 0, 0]), rgba)  # noqa: E731
+    wrist_len = wrist_a - lx / 2
+    return [
+        box((lx, ly, lz), (0.0, 0.0, -lz / 2), _WHITE),                               # palm
+        box((0.055, ly * 0.95, 0.014), (lx / 2 + 0.0275, 0.0, -0.011)),               # fingers
+        box((0.035, 0.016, 0.014), (-0.005, -ly / 2 - 0.008, -0.012)),                # thumb
+        box((wrist_len, 0.04, 0.02), (-lx / 2 - wrist_len / 2, 0.0, -0.014), _GREY),  # wrist
+    ]
+
+
+class SimWorld:
+    """A PyBullet world with the arm, its marked hand and the static torso and head.
+
+    Parameters
+    ----------
+    robot : ArmModel
+        Robot description (base, limits, joint names, marker placements, eyes).
+    dh : array_like, shape (L, 4), optional
+        The simulated robot's real DH table; the description's nominal table if omitted.
+    marker_dictionary : str, optional
+        Overrides the description's dictionary.
+    marker_ids : sequence of int, optional
+        Overrides the ids of the description's markers (same count and order).
+    marker_side_length : float, optional
+        Overrides the black square's side [m].
+    head_pose : array_like, shape (5,), optional
+        Head joints [rad] used to place the (static) head geometry.
+    physics_step : float
+        Fixed physics time step [s].
+    """
+
+    def __init__(self, robot: ArmModel, dh: ArrayLike | None = None, *,
+                 marker_dictionary: str | None = None, marker_ids: Sequence[int] | None = None,
+                 marker_side_length: float | None = None, head_pose: ArrayLike | None = None,
+                 physics_step: float = 0.002) -> None:
+        self.robot = robot
+        self.dh = np.array(robot.dh if dh is None else dh, dtype=float)
+        if self.dh.shape != robot.dh.shape or not np.all(np.isfinite(self.dh)):
+            raise ValueError(f'dh must be a finite table of shape {robot.dh.shape}, got {self.dh.tolist()}')
+        if not robot.markers:
+            raise ValueError(f'robot {robot.name!r} has no hand_markers; the world needs at least one')
+        if not (np.isfinite(physics_step) and physics_step > 0):
+            raise ValueError(f'physics_step must be > 0 s, got {physics_step}')
+        dictionary = marker_dictionary or robot.marker_dictionary
+        side = robot.marker_side_length if marker_side_length is None else float(marker_side_length)
+        if not 0 < side < 0.06:
+            raise ValueError(f'marker side length must be in (0, 0.06) m to fit the palm, got {side}')
+        ids = [m.marker_id for m in robot.markers] if marker_ids is None else [int(i) for i in marker_ids]
+        if len(ids) != len(robot.markers) or len(set(ids)) != len(ids):
+            raise ValueError(f'marker_ids must be {len(robot.markers)} distinct ids, got {ids}')
+        self.markers = tuple(
+            MarkerSpec(MarkerPlacement(m.name, i, m.hand_T_marker), dictionary, side)
+            for m, i in zip(robot.markers, ids))
+        for spec in self.markers:
+            if spec.quad_side > min(HAND_SIZE[:2]) + 1e-9:
+                raise ValueError(f'marker {spec.placement.name!r}: printed side {spec.quad_side:.4f} m '
+                                 f'(with quiet zone) does not fit on the {HAND_SIZE[:2]} m palm')
+        self.physics_step = float(physics_step)
+        self._tmp = tempfile.mkdtemp(prefix='icub_sim_')
+        self._client = bullet_client.BulletClient(connection_mode=p.DIRECT)
+        try:
+            self._build(head_pose)
+        except Exception:
+            self.close()
+            raise
+
+    # ----------------------------------------------------------------------------------------
+    # Construction
+
+    def _build(self, head_pose: ArrayLike | None) -> None:
+        c = self._client
+        c.setGravity(0, 0, 0)
+        c.setPhysicsEngineParameter(fixedTimeStep=self.physics_step)
+        quad = os.path.join(self._tmp, 'marker_quad.obj')
+        with open(quad, 'w') as f:
+            f.write(_QUAD_OBJ)
+        names = self.robot.joint_names
+        visuals: dict[str, list[Visual]] = {
+            f'{j}_link': _segment_visuals(a, d, _LINK_RADIUS.get(j, 0.02), _WHITE)
+            for j, (a, d, _alpha, _off) in zip(names, self.dh)}
+        visuals[f'{names[-1]}_link'] = [Visual('sphere', (0.018,), rgba=_GREY)]
+        visuals['hand'] = _hand_visuals(float(self.dh[-1, 0]))
+        extra = []
+        for spec in self.markers:
+            s = spec.quad_side
+            extra.append(FixedLink(f'marker_{spec.placement.name}', 'hand', spec.placement.hand_T_marker,
+                                   (Visual('mesh', (s, s, 1.0), filename=quad, rgba=(1, 1, 1, 1)),)))
+        urdf = dh_chain_urdf(self.dh, names, self.robot.limits, base=self.robot.base,
+                             name=self.robot.name, root_link=self.robot.root_frame,
+                             visuals=visuals, extra_links=extra, link_mass=0.01)
+        path = os.path.join(self._tmp, 'arm.urdf')
+        with open(path, 'w') as f:
+            f.write(urdf)
+        self.body = c.loadURDF(path, useFixedBase=True, flags=p.URDF_USE_INERTIA_FROM_FILE)
+        self._joint_index: dict[str, int] = {}
+        self._link_index: dict[str, int] = {self.robot.root_frame: -1}
+        for i in range(c.getNumJoints(self.body)):
+            info = c.getJointInfo(self.body, i)
+            self._joint_index[info[1].decode()] = i
+            self._link_index[info[12].decode()] = i
+        self._arm_joints = [self._joint_index[j] for j in names]
+        for spec in self.markers:
+            img = marker_texture(spec.dictionary, spec.placement.marker_id, quiet_cells=spec.quiet_cells)
+            png = os.path.join(self._tmp, f'marker_{spec.placement.marker_id}.png')
+            import cv2
+
+            # With the quad's uv (0, 0) at marker (-x, -y), TinyRenderer shows image row 0 at
+            # marker +y: the printed marker is upright (x right, y up), as ArUco's corner order needs.
+            cv2.imwrite(png, img)
+            tex = c.loadTexture(png)
+            c.changeVisualShape(self.body, self._link_index[f'marker_{spec.placement.name}'], -1,
+                                textureUniqueId=tex, rgbaColor=[1, 1, 1, 1])
+        self._build_context(head_pose)
+        self.set_joint_positions(np.clip(np.zeros(len(names)), self.robot.limits[:, 0], self.robot.limits[:, 1]))
+
+    def _build_context(self, head_pose: ArrayLike | None) -> None:
+        """Static torso (around root_link) and a head behind the eyes."""
+        c = self._client
+        torso = [((0.12, 0.15, 0.32), (0.01, 0.0, 0.05), _WHITE),     # chest and belly
+                 ((0.10, 0.24, 0.08), (0.0, 0.0, -0.14), _GREY),      # hips
+                 ((12.0, 12.0, 0.01), (0.0, 0.0, -0.605), _FLOOR)]      # floor (the iCub stands ~0.6 m tall at the waist)
+        for size, xyz, rgba in torso:
+            vs = c.createVisualShape(p.GEOM_BOX, halfExtents=[s / 2 for s in size], rgbaColor=rgba)
+            c.createMultiBody(0, -1, vs, basePosition=xyz)
+        self._head = None
+        if self.robot.eyes is not None and 'left' in self.robot.eyes.links:
+            self.set_head_pose(self.robot.eyes.head_pose if head_pose is None else head_pose)
+
+    def set_head_pose(self, head_pose: ArrayLike) -> None:
+        """Place the static head geometry for head joints ``head_pose`` (5,) [rad]."""
+        c = self._client
+        left = self.robot.camera_pose('left', head_pose)
+        # A 12 x 10 x 10 cm skull just behind the eyes (never in front: the cameras sit there).
+        centre = left @ np.array([0.034, 0.0, -0.065, 1.0])
+        quat = _quat_xyzw(left[:3, :3])
+        if self._head is None:
+            vs = c.createVisualShape(p.GEOM_BOX, halfExtents=[0.06, 0.05, 0.05], rgbaColor=_WHITE)
+            self._head = c.createMultiBody(0, -1, vs, basePosition=centre[:3], baseOrientation=quat)
+        else:
+            c.resetBasePositionAndOrientation(self._head, centre[:3], quat)
+
+    # ----------------------------------------------------------------------------------------
+    # State
+
+    @property
+    def joint_names(self) -> tuple[str, ...]:
+        return self.robot.joint_names
+
+    def set_joint_positions(self, q: ArrayLike) -> None:
+        """Place the arm at ``q`` (L,) [rad] exactly (kinematic arm)."""
+        q = np.asarray(q, dtype=float)
+        if q.shape != (len(self._arm_joints),) or not np.all(np.isfinite(q)):
+            raise ValueError(f'joint positions must be {len(self._arm_joints)} finite values, got {q!r}')
+        for idx, v in zip(self._arm_joints, q):
+            self._client.resetJointState(self.body, idx, float(v), 0.0)
+
+    def joint_positions(self) -> NDArray[np.float64]:
+        """Present joint positions, shape (L,) [rad]."""
+        return np.array([s[0] for s in self._client.getJointStates(self.body, self._arm_joints)])
+
+    def step(self) -> None:
+        """Advance the physics by one fixed step (gravity-free; the arm stays where it was put)."""
+        self._client.stepSimulation()
+
+    def link_pose(self, link: str) -> NDArray[np.float64]:
+        """Pose of a URDF link frame in root_link, shape (4, 4)."""
+        if link not in self._link_index:
+            raise KeyError(f'unknown link {link!r}')
+        idx = self._link_index[link]
+        if idx < 0:
+            return np.eye(4)
+        st = self._client.getLinkState(self.body, idx, computeForwardKinematics=True)
+        t = np.eye(4)
+        t[:3, :3] = np.array(self._client.getMatrixFromQuaternion(st[5])).reshape(3, 3)
+        t[:3, 3] = st[4]
+        return t
+
+    def hand_pose(self) -> NDArray[np.float64]:
+        """Hand frame in root_link, shape (4, 4)."""
+        return self.link_pose('hand')
+
+    def marker_corners(self) -> dict[int, NDArray[np.float64]]:
+        """Black-square corners of each marker in root_link, ArUco order; id -> (4, 3)."""
+        hand = self.hand_pose()
+        out = {}
+        for spec in self.markers:
+            t = hand @ spec.placement.hand_T_marker
+            out[spec.placement.marker_id] = spec.corners_in_marker() @ t[:3, :3].T + t[:3, 3]
+        return out
+
+    # ----------------------------------------------------------------------------------------
+    # Cameras
+
+    def render(self, root_T_cam: ArrayLike, intrinsics: CameraIntrinsics, near: float = 0.01,
+               far: float = 5.0) -> NDArray[np.uint8]:
+        """Render an RGB image with TinyRenderer.
+
+        Parameters
+        ----------
+        root_T_cam : array_like, shape (4, 4)
+            Optical frame (z forward, x right, y down) in root_link.
+        intrinsics : CameraIntrinsics
+        near, far : float
+            Clipping distances [m].
+
+        Returns
+        -------
+        ndarray, shape (H, W, 3), uint8, C-contiguous
+        """
+        w, h = intrinsics.width, intrinsics.height
+        view = cam.to_gl_list(cam.gl_view(root_T_cam))
+        proj = cam.to_gl_list(cam.gl_projection(intrinsics.K, w, h, near, far))
+        rgba = self._client.getCameraImage(
+            w, h, view, proj, renderer=p.ER_TINY_RENDERER, flags=p.ER_NO_SEGMENTATION_MASK,
+            shadow=0, lightDirection=[-1.0, 0.3, 1.5], lightAmbientCoeff=0.65,
+            lightDiffuseCoeff=0.35, lightSpecularCoeff=0.0)[2]
+        return np.ascontiguousarray(np.asarray(rgba, dtype=np.uint8).reshape(h, w, 4)[:, :, :3])
+
+    # ----------------------------------------------------------------------------------------
+
+    def close(self) -> None:
+        """Disconnect from PyBullet and remove the generated files."""
+        if getattr(self, '_client', None) is not None:
+            try:
+                self._client.disconnect()
+            except p.error:
+                pass
+            self._client = None
+        shutil.rmtree(self._tmp, ignore_errors=True)
+
+    def __enter__(self) -> 'SimWorld':
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __del__(self) -> None:
+        try:
+            self.close()
+        except Exception:  # noqa: BLE001 (interpreter shutdown)
+            pass
+
+
+def _quat_xyzw(r: NDArray[np.float64]) -> list[float]:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_matrix(r).as_quat().tolist()

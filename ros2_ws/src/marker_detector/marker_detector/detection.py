@@ -401,7 +401,11 @@ def _rms_error(obj: NDArray[np.float64], img: NDArray[np.float64], t: NDArray[np
 
 def solve_marker_pose(marker: DetectedMarker, side: float, k: ArrayLike,
                       dist: ArrayLike | None = None, refine_lm: bool = True) -> MarkerPose:
-    """Both IPPE_SQUARE solutions for one marker, best first (no gating; see :func:`gate_marker`).
+    """Best pose of one marker and its planar-flip alternative (no gating; see :func:`gate_marker`).
+
+    Candidates are the two IPPE_SQUARE solutions plus SQPnP's (a guard against an OpenCV IPPE
+    failure on mirror-symmetric images); the one with the smallest reprojection error wins and
+    the IPPE solution farthest from it in rotation is the alternative (the flip).
 
     Parameters
     ----------
@@ -429,20 +433,30 @@ def solve_marker_pose(marker: DetectedMarker, side: float, k: ArrayLike,
                          0.0, np.nan, np.nan, 'invalid')
     if not (np.all(np.isfinite(img)) and np.all(np.isfinite(k)) and np.all(np.isfinite(dist))):
         return invalid
-    try:
-        n, rvecs, tvecs, errs = cv2.solvePnPGeneric(obj, img, k, dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)
-    except cv2.error:
-        return invalid
-    sols = []
-    for i in range(int(n)):
-        t = _to_matrix(rvecs[i], tvecs[i])
-        if np.all(np.isfinite(t)) and t[2, 3] > 0:
-            sols.append(t)
+    sols, n_ippe = [], 0
+    # IPPE_SQUARE gives both planar solutions. OpenCV 5.0's IPPE returns two wrong poses
+    # (tens of px) when the square's image is (nearly) mirror-symmetric about a row; SQPnP's
+    # global minimum is a cheap (~0.1 ms) safety net that never loses the true pose.
+    for flag in (cv2.SOLVEPNP_IPPE_SQUARE, cv2.SOLVEPNP_SQPNP):
+        try:
+            n, rvecs, tvecs, _ = cv2.solvePnPGeneric(obj, img, k, dist, flags=flag)
+        except cv2.error:
+            continue
+        for i in range(int(n)):
+            t = _to_matrix(rvecs[i], tvecs[i])
+            if np.all(np.isfinite(t)) and t[2, 3] > 0:
+                sols.append(t)
+        if flag == cv2.SOLVEPNP_IPPE_SQUARE:
+            n_ippe = len(sols)
     if not sols:
         return invalid
     errors = [_rms_error(obj, img, t, k, dist) for t in sols]
-    order = np.argsort(errors)
+    order = [int(i) for i in np.argsort(errors)]
     best = sols[order[0]]
+    # The alternative is the IPPE solution farthest in rotation from the winner: the flip.
+    # (SQPnP and the matching IPPE solution differ by a degree or so; that is not the flip.)
+    angles = [float(rotation_angle_deg(best[:3, :3], sols[i][:3, :3])) for i in range(n_ippe)]
+    others = [int(np.argmax(angles))] if angles and max(angles) > 0.5 else []
     if refine_lm:
         rvec, tvec = cv2.Rodrigues(best[:3, :3])[0], best[:3, 3].reshape(3, 1).copy()
         try:
@@ -454,9 +468,9 @@ def solve_marker_pose(marker: DetectedMarker, side: float, k: ArrayLike,
         except cv2.error:
             pass
     err = _rms_error(obj, img, best, k, dist)
-    if len(sols) > 1:
-        alt = sols[order[1]]
-        alt_err = errors[order[1]]
+    if others:
+        alt = sols[others[0]]
+        alt_err = errors[others[0]]
         angle = float(rotation_angle_deg(best[:3, :3], alt[:3, :3]))
     else:
         alt, alt_err, angle = None, np.inf, 0.0

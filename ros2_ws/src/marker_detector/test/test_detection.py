@@ -149,38 +149,37 @@ def test_invalid_inputs_give_invalid_pose(corners: np.ndarray, k: np.ndarray) ->
     assert pose.status == 'invalid' or not gate_marker(pose, DetectorConfig()).ok
 
 
-def _scene(model, q_deg, eye='left', markers=None, res=SIZE, noise=2.0, seed=0):
-    """Render the hand's markers as the model's eye sees them; return image, K, camera, hand."""
+Q_DEG = np.array([-50.0, 60.0, 70.0, 45.0, 10.0, -30.0, 5.0])
+
+
+def _camera_facing(model, q_deg, distance=0.3, tilt=35.0, target=None):
+    """A camera (optical frame in root) that sees the palm at ``distance`` and angle ``tilt``.
+
+    Independent of the description's head pose and box, so these tests do not move when they are
+    re-measured; the hand pose itself still comes from the real FK and marker placements.
+    """
+    target = model.markers[0].hand_T_marker if target is None else target
+    cam_T_target = look_at_pose(distance, tilt, axis=(0.6, 0.8, 0.0), offset=(0.01, -0.005), spin_deg=20)
+    return model.forward_kinematics(np.radians(q_deg)) @ target @ np.linalg.inv(cam_T_target)
+
+
+def _scene(model, q_deg, root_T_cam, res=SIZE, noise=2.0, seed=0):
+    """Render the hand's markers as ``root_T_cam`` sees them; return image, K, hand, shown markers."""
     cam = model.camera.scaled(*res)
-    root_T_cam = model.camera_pose(eye)
     root_T_hand = model.forward_kinematics(np.radians(q_deg))
-    placements = markers or model.markers
     shown = []
-    for m in placements:
+    for m in model.markers:
         cam_T_marker = np.linalg.inv(root_T_cam) @ root_T_hand @ m.hand_T_marker
         if view_geometry(np.eye(4), cam_T_marker)[1] < 85:       # only faces toward the camera
             shown.append((m.marker_id, cam_T_marker))
     img = render_markers(cam.K, res, shown, model.marker_side_length, noise_sigma=noise, seed=seed)
-    return img, cam.K, root_T_cam, root_T_hand, shown
-
-
-def _find_visible_config(model, rng, n_markers=1, markers=None):
-    for _ in range(2000):
-        q = np.degrees(rng.uniform(model.calibration_box[:, 0], model.calibration_box[:, 1]))
-        img, k, root_T_cam, root_T_hand, shown = _scene(model, q, markers=markers)
-        if len(shown) >= n_markers:
-            r, phi = view_geometry(np.eye(4), np.stack([p for _, p in shown]))
-            uv = np.array([_project(p, k).mean(0) for _, p in shown])
-            if np.all(r < 0.45) and np.all((phi > 25) & (phi < 60)) and np.all(
-                    (uv > 40).all(1) & (uv[:, 0] < 280) & (uv[:, 1] < 200)):
-                return q
-    pytest.skip('no configuration with the hand in view in this description')
+    return img, cam.K, root_T_hand, shown
 
 
 def test_hand_pose_in_root_frame_with_covariance(model) -> None:
-    rng = np.random.default_rng(6)
-    q = _find_visible_config(model, rng)
-    img, k, root_T_cam, root_T_hand, shown = _scene(model, q)
+    root_T_cam = _camera_facing(model, Q_DEG)
+    img, k, root_T_hand, shown = _scene(model, Q_DEG, root_T_cam)
+    assert [i for i, _ in shown] == [0]
     pdn = PoseDependentNoise()
     res = HandPoseEstimator(model, pdn).process(img, k, None, root_T_cam)
     assert res.success and len(res.markers) == 1
@@ -221,9 +220,10 @@ def _two_marker_model(model):
 @pytest.mark.parametrize('fusion', ['best', 'weighted', 'joint'])
 def test_fusion_of_two_markers(model, fusion: str) -> None:
     two = _two_marker_model(model)
-    rng = np.random.default_rng(8)
-    q = _find_visible_config(two, rng, n_markers=2)
-    img, k, root_T_cam, root_T_hand, shown = _scene(two, q)
+    hand_centre = np.eye(4)
+    hand_centre[2, 3] = 0.0005
+    root_T_cam = _camera_facing(two, Q_DEG, 0.25, 30.0, target=hand_centre)
+    img, k, root_T_hand, shown = _scene(two, Q_DEG, root_T_cam)
     est = HandPoseEstimator(two, PoseDependentNoise(), DetectorConfig(fusion=fusion))
     res = est.process(img, k, None, root_T_cam)
     assert res.success and [m.marker_id for m in res.markers] == [0, 1]
@@ -266,9 +266,8 @@ def test_bad_arrays_and_configs_raise(model) -> None:
 
 def test_time_per_frame(model) -> None:
     """The budget is 5 ms per 320x240 frame; assert a loose bound so a loaded CI stays green."""
-    rng = np.random.default_rng(10)
-    q = _find_visible_config(model, rng)
-    img, k, root_T_cam, *_ = _scene(model, q)
+    root_T_cam = _camera_facing(model, Q_DEG)
+    img, k, *_ = _scene(model, Q_DEG, root_T_cam)
     est = HandPoseEstimator(model, PoseDependentNoise())
     est.process(img, k, None, root_T_cam)
     times = []
@@ -277,3 +276,13 @@ def test_time_per_frame(model) -> None:
         assert est.process(img, k, None, root_T_cam).success
         times.append(time.perf_counter() - t0)
     assert np.median(times) < 0.02
+
+
+@pytest.mark.parametrize('offset', [(0.0, 0.0), (0.02, 0.01)])
+def test_mirror_symmetric_image_still_solved(offset) -> None:
+    """OpenCV 5.0's IPPE returns two wrong poses when the square's image has horizontal edges
+    (a pure pan tilt); the SQPnP candidate must keep the true one."""
+    truth = look_at_pose(0.25, 40.0, axis=(0, 1, 0), offset=offset)
+    pose = gate_marker(solve_marker_pose(DetectedMarker(0, _project(truth)), SIDE, K), DetectorConfig())
+    assert pose.ok and pose.error_px < 1e-3
+    assert rotation_angle_deg(pose.cam_T_marker[:3, :3], truth[:3, :3]) < 0.01

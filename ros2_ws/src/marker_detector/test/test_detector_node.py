@@ -15,7 +15,7 @@ from marker_detector.detection import rotation_angle_deg
 from marker_detector.detector_node import (LATCHED_QOS, DetectorNode, matrix_to_pose_msg,
                                            pose_msg_to_matrix)
 from marker_detector.image_conversion import array_to_image_fields
-from marker_detector.synthetic import render_markers
+from marker_detector.synthetic import look_at_pose, render_markers
 
 SENSOR_QOS = 5
 
@@ -25,19 +25,20 @@ def model():
     return load_robot('icub_right_arm')
 
 
-def _visible_config(model) -> np.ndarray:
-    rng = np.random.default_rng(11)
-    root_T_cam = model.camera_pose('left')
-    for _ in range(3000):
-        q = rng.uniform(model.calibration_box[:, 0], model.calibration_box[:, 1])
-        hand = model.forward_kinematics(q)
-        cam_T_m = np.linalg.inv(root_T_cam) @ hand @ model.markers[0].hand_T_marker
-        r, phi = view_geometry(np.eye(4), cam_T_m)
-        uv = model.camera.K @ cam_T_m[:3, 3]
-        uv = uv[:2] / uv[2]
-        if r < 0.4 and 25 < phi < 55 and 60 < uv[0] < 260 and 60 < uv[1] < 180:
-            return q
-    pytest.skip('no configuration shows the palm marker')
+Q = np.radians([-50.0, 60.0, 70.0, 45.0, 10.0, -30.0, 5.0])
+
+
+def _camera_poses(model) -> dict[str, np.ndarray]:
+    """Eyes 6.8 cm apart that see the palm marker at ~0.3 m and ~35 deg.
+
+    Built from the hand pose rather than the description's head pose, so the test does not move
+    when the head pose or calibration box are re-measured.
+    """
+    cam_T_marker = look_at_pose(0.3, 35.0, axis=(0.6, 0.8, 0.0), offset=(0.034, 0.0), spin_deg=20)
+    left = model.forward_kinematics(Q) @ model.markers[0].hand_T_marker @ np.linalg.inv(cam_T_marker)
+    right = left.copy()
+    right[:3, 3] += 0.068 * left[:3, 0]
+    return {'left': left, 'right': right}
 
 
 class Camera:
@@ -46,6 +47,7 @@ class Camera:
     def __init__(self, ros: Any, model, eye: str = 'left') -> None:
         self.node = ros.node(f'fake_camera_{eye}')
         self.model, self.eye = model, eye
+        self.root_T_cam = _camera_poses(model)[eye]
         self.image = self.node.create_publisher(Image, f'/camera/{eye}/image_raw', SENSOR_QOS)
         self.info = self.node.create_publisher(CameraInfo, f'/camera/{eye}/camera_info', SENSOR_QOS)
         self.pose = self.node.create_publisher(PoseStamped, f'/camera/{eye}/pose', LATCHED_QOS)
@@ -53,7 +55,7 @@ class Camera:
     def publish_pose(self) -> None:
         msg = PoseStamped()
         msg.header.frame_id = 'root_link'
-        msg.pose = matrix_to_pose_msg(self.model.camera_pose(self.eye))
+        msg.pose = matrix_to_pose_msg(self.root_T_cam)
         self.pose.publish(msg)
 
     def publish_info(self) -> None:
@@ -68,7 +70,7 @@ class Camera:
         self.info.publish(msg)
 
     def render(self, q: np.ndarray) -> np.ndarray:
-        root_T_cam = self.model.camera_pose(self.eye)
+        root_T_cam = self.root_T_cam
         hand = self.model.forward_kinematics(q)
         shown = []
         for m in self.model.markers:
@@ -114,7 +116,7 @@ def _wait_connected(ros: Any, cam: Camera, det: DetectorNode, probe: Probe) -> N
 
 
 def test_detects_hand_and_publishes_contract(ros: Any, model) -> None:
-    q = _visible_config(model)
+    q = Q
     cam, probe = Camera(ros, model), Probe(ros)
     cam.publish_pose()                      # latched before the detector exists: late joiner
     det = _detector(ros, use_sim_time=True)
@@ -138,7 +140,7 @@ def test_detects_hand_and_publishes_contract(ros: Any, model) -> None:
     assert np.linalg.norm(est[:3, 3] - truth[:3, 3]) < 0.006
     assert rotation_angle_deg(est[:3, :3], truth[:3, :3]) < 2.0
     cov = np.array(hand.pose.covariance).reshape(6, 6)
-    cam_T_m = np.linalg.inv(model.camera_pose('left')) @ truth @ model.markers[0].hand_T_marker
+    cam_T_m = np.linalg.inv(cam.root_T_cam) @ truth @ model.markers[0].hand_T_marker
     r, phi = view_geometry(np.eye(4), cam_T_m)
     np.testing.assert_allclose(cov, PoseDependentNoise().covariance(r, phi), rtol=0.05)
     ros.spin_until(lambda: any(len(m.poses) == 1 for m in probe.markers), 5.0, '/markers')
@@ -188,7 +190,7 @@ def test_constant_noise_and_invalid_parameters(ros: Any, model) -> None:
 
 
 def test_stereo_pair_gives_one_fused_outcome(ros: Any, model) -> None:
-    q = _visible_config(model)
+    q = Q
     left, right, probe = Camera(ros, model, 'left'), Camera(ros, model, 'right'), Probe(ros)
     left.publish_pose()
     right.publish_pose()
@@ -199,7 +201,7 @@ def test_stereo_pair_gives_one_fused_outcome(ros: Any, model) -> None:
                             all(e.k is not None for e in det.eyes.values()))[-1], 5.0, 'infos')
     images = {'left': left.render(q), 'right': right.render(q)}
     assert det.estimator.process(images['right'][..., 0], model.camera.K, None,
-                                 model.camera_pose('right')).success, 'the right eye must see it too'
+                                 right.root_T_cam).success, 'the right eye must see it too'
 
     def send(stamp: int, eyes: tuple[str, ...]) -> bool:
         for cam in (left, right):
@@ -214,7 +216,7 @@ def test_stereo_pair_gives_one_fused_outcome(ros: Any, model) -> None:
     assert len(pair) == 1 and len(pair[0].poses) == 2 and len(hands) == 1
     cov = np.array(hands[0].pose.covariance).reshape(6, 6)
     left_only = det.estimator.process(images['left'][..., 0], model.camera.K, None,
-                                      model.camera_pose('left')).hand
+                                      left.root_T_cam).hand
     assert cov[0, 0] < left_only.pos_var                   # two eyes know more than one
     # Both markers in /markers are in the left camera frame: the same marker twice, nearly equal.
     a, b = (pose_msg_to_matrix(p)[:3, 3] for p in pair[0].poses)

@@ -1,0 +1,287 @@
+"""Accuracy study of the detector against ground truth in the simulator (pure; no rclpy).
+
+For uniformly drawn configurations of the robot description's calibration box, the simulator's
+PyBullet world (:class:`icub_sim_bridge.world.SimWorld`, built with the nominal DH table, so the
+true hand pose is the description's forward kinematics) renders the eye images; the detector
+estimates the hand pose and the study measures
+
+* detection rate (over all configurations, and over those where a marker faces the camera
+  inside the image), median and 95th-percentile hand position [mm] and orientation [deg] errors,
+* the error as a function of marker distance ``r`` and viewing angle ``phi``,
+* the time of detection plus pose per frame,
+* single eye vs stereo fusion, and the fusion modes when two markers are accepted in one image,
+* a sweep of the ambiguity gate,
+
+and fits the noise model (paper eq. 13, one law for position and one for orientation) to the
+squared errors by maximum likelihood. Frames are rendered once and re-evaluated under every
+setting, since gating and fusion work on the stored ungated marker poses.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+from typing import Any, Sequence
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import minimize, nnls
+
+from body_schema.noise import ConstantNoise, NoiseModel, PoseDependentNoise, view_geometry
+from body_schema.robot import ArmModel
+
+from .detection import DetectorConfig, HandPoseEstimator, MarkerPose, gate_marker, rotation_angle_deg
+
+__all__ = ['Frame', 'Outcome', 'NoiseFit', 'collect', 'evaluate', 'fit_noise', 'summarize']
+
+
+@dataclass
+class Frame:
+    """One rendered image and what the detector found in it (ungated marker poses).
+
+    ``truth_view`` maps marker id to ``(r [m], phi [deg], in_image)`` from the true geometry.
+    """
+
+    config: int
+    eye: str
+    size: tuple[int, int]
+    k: NDArray[np.float64]
+    root_T_cam: NDArray[np.float64]
+    truth: NDArray[np.float64]
+    poses: list[MarkerPose]
+    truth_view: dict[int, tuple[float, float, bool]]
+    seconds: float
+
+
+@dataclass
+class Outcome:
+    """Per-frame results of one evaluation (arrays of length N frames).
+
+    ``r``/``phi`` are the true distance and viewing angle of the marker the estimate relies on
+    most (the one with the smallest predicted variance); NaN on failure.
+    """
+
+    success: NDArray[np.bool_]
+    in_view: NDArray[np.bool_]
+    pos_err: NDArray[np.float64]          # [m]
+    rot_err: NDArray[np.float64]          # [rad]
+    pos_vec: NDArray[np.float64]          # (N, 3) [m]
+    rot_vec: NDArray[np.float64]          # (N, 3) [rad], root frame
+    r: NDArray[np.float64]
+    phi: NDArray[np.float64]
+    n_markers: NDArray[np.int64]
+    statuses: dict[str, int] = field(default_factory=dict)
+
+
+def _truth_view(frame_root_T_cam: NDArray[np.float64], truth: NDArray[np.float64], model: ArmModel,
+                k: NDArray[np.float64], size: tuple[int, int]) -> dict[int, tuple[float, float, bool]]:
+    out = {}
+    cam_T_root = np.linalg.inv(frame_root_T_cam)
+    h = model.marker_side_length / 2
+    corners = np.array([[-h, h, 0, 1], [h, h, 0, 1], [h, -h, 0, 1], [-h, -h, 0, 1]], float).T
+    for m in model.markers:
+        cam_T_m = cam_T_root @ truth @ m.hand_T_marker
+        r, phi = view_geometry(np.eye(4), cam_T_m)
+        pc = (cam_T_m @ corners)[:3]
+        inside = bool(np.all(pc[2] > 0.01))
+        if inside:
+            uv = (k @ pc)[:2] / pc[2]
+            inside = bool(np.all((uv[0] >= 0) & (uv[0] <= size[0] - 1) & (uv[1] >= 0) & (uv[1] <= size[1] - 1)))
+        out[m.marker_id] = (float(r), float(phi), inside and float(phi) < 80.0)
+    return out
+
+
+def collect(model: ArmModel, world: Any, configs: NDArray[np.float64],
+            views: Sequence[tuple[str, tuple[int, int]]], noise_std: float = 0.0, seed: int = 0,
+            config: DetectorConfig | None = None) -> list[Frame]:
+    """Render every configuration in every view and run detection plus pose on it.
+
+    Parameters
+    ----------
+    model : ArmModel
+    world : icub_sim_bridge.world.SimWorld
+        Built from ``model`` with its nominal DH table.
+    configs : ndarray, shape (N, L)
+    views : sequence of (eye, (width, height))
+    noise_std : float
+        Additive Gaussian pixel noise [grey levels] (seeded), on top of the renderer's image.
+    config : DetectorConfig, optional
+        Used for the timed run (the study re-gates afterwards).
+
+    Returns
+    -------
+    list of Frame, configuration-major.
+    """
+    est = HandPoseEstimator(model, PoseDependentNoise(), config or DetectorConfig())
+    rng = np.random.default_rng(seed)
+    frames = []
+    cams = {(eye, size): (model.camera.scaled(*size), model.camera_pose(eye)) for eye, size in views}
+    for i, q in enumerate(configs):
+        world.set_joint_positions(q)
+        truth = model.forward_kinematics(q)
+        for eye, size in views:
+            intr, root_T_cam = cams[(eye, size)]
+            rgb = world.render(root_T_cam, intr)
+            if noise_std > 0:
+                noisy = rgb.astype(np.float32) + rng.normal(0.0, noise_std, rgb.shape).astype(np.float32)
+                rgb = np.clip(noisy + 0.5, 0, 255).astype(np.uint8)
+            t0 = time.perf_counter()
+            gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+            res = est.process(gray, intr.K, None, root_T_cam)
+            dt = time.perf_counter() - t0
+            poses = [p if p.status == 'invalid' else replace(p, status='ok')
+                     for p in res.markers + res.rejected]
+            frames.append(Frame(i, eye, size, intr.K, root_T_cam, truth, poses,
+                                _truth_view(root_T_cam, truth, model, intr.K, size), dt))
+    return frames
+
+
+def evaluate(frames: Sequence[Frame], estimator: HandPoseEstimator, fusion: str | None = None) -> Outcome:
+    """Gate and fuse stored frames with ``estimator``'s settings; compare with the truth."""
+    n = len(frames)
+    out = Outcome(np.zeros(n, bool), np.zeros(n, bool), np.full(n, np.nan), np.full(n, np.nan),
+                  np.full((n, 3), np.nan), np.full((n, 3), np.nan), np.full(n, np.nan),
+                  np.full(n, np.nan), np.zeros(n, np.int64))
+    statuses: dict[str, int] = {}
+    for i, f in enumerate(frames):
+        out.in_view[i] = any(v[2] for v in f.truth_view.values())
+        gated = [gate_marker(p, estimator.config) for p in f.poses]
+        for p in gated:
+            statuses[p.status] = statuses.get(p.status, 0) + 1
+        hand = estimator.combine(gated, f.k, None, f.root_T_cam, fusion)
+        if hand is None:
+            continue
+        out.success[i] = True
+        out.n_markers[i] = sum(p.ok for p in gated)
+        out.pos_vec[i] = hand.pose[:3, 3] - f.truth[:3, 3]
+        out.pos_err[i] = np.linalg.norm(out.pos_vec[i])
+        from scipy.spatial.transform import Rotation
+
+        out.rot_vec[i] = Rotation.from_matrix(hand.pose[:3, :3] @ f.truth[:3, :3].T).as_rotvec()
+        out.rot_err[i] = np.linalg.norm(out.rot_vec[i])
+        # The marker the estimate relies on most: smallest predicted variance among those used.
+        used = [p for p in gated if p.ok and p.marker_id in hand.marker_ids]
+        best = min(used, key=lambda p: float(estimator.quality.variances(p.r, p.phi_deg)[0]))
+        out.r[i], out.phi[i] = f.truth_view[best.marker_id][:2]
+    out.statuses = statuses
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Noise-model fit
+
+
+@dataclass(frozen=True)
+class NoiseFit:
+    """Fitted noise laws and how well they describe the errors.
+
+    ``pdn`` holds the pose-dependent model, ``cn`` the constant one; ``nll_*`` are the mean
+    negative log-likelihoods per sample (position and orientation blocks added; lower is
+    better); ``coverage_*`` the fraction of samples inside the 95 % chi-square(3) ellipsoid
+    for each block (0.95 for a calibrated model).
+    """
+
+    pdn: PoseDependentNoise
+    cn: ConstantNoise
+    n: int
+    nll_pdn: float
+    nll_cn: float
+    coverage_pdn: tuple[float, float]
+    coverage_cn: tuple[float, float]
+
+
+def _fit_law(sq: NDArray[np.float64], r: NDArray[np.float64], phi: NDArray[np.float64],
+             dof: int = 3) -> tuple[NDArray[np.float64], float]:
+    """ML fit of ``v = a r^2 + b (phi-45)^2 + f`` to squared error norms ``sq ~ v chi2(dof)``.
+
+    Returns the coefficients (a, b, f) and the mean negative log-likelihood per sample.
+    """
+    design = np.c_[r ** 2, (phi - 45.0) ** 2, np.ones_like(r)]
+    # Start from non-negative least squares on sq / dof (unbiased for v but dominated by the
+    # largest errors), then maximise the Gaussian likelihood, which weights each sample by 1/v.
+    x0, _ = nnls(design, sq / dof)
+    scale = np.maximum(np.abs(design).mean(0), 1e-12)
+    x0 = np.maximum(x0, 1e-6 * max(float(np.mean(sq / dof)), 1e-300) / scale)
+
+    def nll(logx: NDArray[np.float64]) -> float:
+        v = design @ np.exp(logx)
+        return float(np.mean(0.5 * dof * np.log(v) + 0.5 * sq / v))
+
+    lo = np.log(x0) - 25.0
+    hi = np.log(x0) + 25.0
+    best = minimize(nll, np.log(x0), method='L-BFGS-B', bounds=list(zip(lo, hi)))
+    coef = np.exp(best.x)
+    # Coefficients pinned at the lower bound are effectively zero.
+    coef[best.x <= lo + 1.0] = 0.0
+    return coef, nll(np.log(np.maximum(coef, 1e-300)))
+
+
+def _gauss_nll(sq: NDArray[np.float64], v: NDArray[np.float64], dof: int = 3) -> float:
+    return float(np.mean(0.5 * dof * np.log(2 * np.pi * v) + 0.5 * sq / v))
+
+
+def fit_noise(outcome: Outcome) -> NoiseFit:
+    """Fit the pose-dependent and constant models to the successful frames of ``outcome``."""
+    ok = outcome.success & np.isfinite(outcome.r)
+    r, phi = outcome.r[ok], outcome.phi[ok]
+    sq_p = outcome.pos_err[ok] ** 2
+    sq_o = outcome.rot_err[ok] ** 2
+    (ap, bp, fp), _ = _fit_law(sq_p, r, phi)
+    (ao, bo, fo), _ = _fit_law(sq_o, r, phi)
+    # A zero floor can make R singular when b = 0; keep a tiny positive one.
+    pdn = PoseDependentNoise(ap, bp, ao, bo, max(fp, 1e-12), max(fo, 1e-12))
+    cn = ConstantNoise(float(np.sqrt(np.mean(sq_p) / 3)), float(np.sqrt(np.mean(sq_o) / 3)))
+    chi95 = 7.814727903251178                       # chi-square(3) 95 % quantile
+
+    def score(model: NoiseModel) -> tuple[float, tuple[float, float]]:
+        vp, vo = (np.broadcast_to(v, r.shape) for v in model.variances(r, phi))
+        return (_gauss_nll(sq_p, vp) + _gauss_nll(sq_o, vo),
+                (float(np.mean(sq_p / vp <= chi95)), float(np.mean(sq_o / vo <= chi95))))
+
+    nll_pdn, cov_pdn = score(pdn)
+    nll_cn, cov_cn = score(cn)
+    return NoiseFit(pdn, cn, int(ok.sum()), nll_pdn, nll_cn, cov_pdn, cov_cn)
+
+
+# --------------------------------------------------------------------------------------------
+# Summaries
+
+
+def summarize(outcome: Outcome, frames: Sequence[Frame] | None = None) -> dict[str, float]:
+    """Headline figures: rates, median/p95 errors [mm, deg], time per frame [ms]."""
+    s = outcome.success
+    pe, re = outcome.pos_err[s] * 1e3, np.degrees(outcome.rot_err[s])
+    q = lambda a, p: float(np.percentile(a, p)) if a.size else float('nan')  # noqa: E731
+    out = {
+        'frames': float(len(s)),
+        'success': float(s.mean()) if len(s) else float('nan'),
+        'success_in_view': float(s[outcome.in_view].mean()) if outcome.in_view.any() else float('nan'),
+        'in_view': float(outcome.in_view.mean()) if len(s) else float('nan'),
+        'pos_med_mm': q(pe, 50), 'pos_p95_mm': q(pe, 95),
+        'rot_med_deg': q(re, 50), 'rot_p95_deg': q(re, 95),
+    }
+    if frames is not None:
+        t = np.array([f.seconds for f in frames]) * 1e3
+        out.update(time_med_ms=q(t, 50), time_p95_ms=q(t, 95))
+    return out
+
+
+def binned(outcome: Outcome, key: str, edges: Sequence[float]) -> list[tuple[str, int, float, float]]:
+    """Median position [mm] and orientation [deg] errors per bin of ``r`` [m] or ``phi`` [deg]."""
+    vals = getattr(outcome, key)
+    s = outcome.success & np.isfinite(vals)
+    rows = []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        m = s & (vals >= lo) & (vals < hi)
+        label = f'{lo:g}-{hi:g}'
+        if m.sum() == 0:
+            rows.append((label, 0, float('nan'), float('nan')))
+        else:
+            rows.append((label, int(m.sum()), float(np.median(outcome.pos_err[m]) * 1e3),
+                         float(np.degrees(np.median(outcome.rot_err[m])))))
+    return rows
+
+
+def rotation_error_deg(a: NDArray[np.float64], b: NDArray[np.float64]) -> float:
+    """Geodesic angle between the rotation parts of two poses [deg]."""
+    return float(rotation_angle_deg(a[:3, :3], b[:3, :3]))

@@ -22,6 +22,8 @@ setup(
     extras_require={'test': ['pytest']},
     entry_points={
         'console_scripts': [
+            'sim_node = icub_sim_bridge.sim_node:main',
+            'sim_visibility = icub_sim_bridge.visibility:main',
         ],
     },
 )

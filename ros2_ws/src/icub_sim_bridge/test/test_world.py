@@ -1,0 +1,135 @@
+"""The PyBullet world without ROS: kinematics match the DH model, images obey K."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from body_schema.noise import view_geometry
+from body_schema.robot import load_robot
+from body_schema.sampling import perturb_dh, uniform_configs
+from icub_sim_bridge.camera import degrade, gl_projection, project_points, refine_square_corners
+from icub_sim_bridge.world import SimWorld, aruco_dictionary, marker_texture
+
+ROBOT = load_robot()
+
+
+@pytest.fixture(scope='module')
+def world():
+    with SimWorld(ROBOT) as w:
+        yield w
+
+
+def test_hand_and_marker_frames_follow_the_dh_table() -> None:
+    dh = perturb_dh(ROBOT.dh, 7, 0.004, np.radians(2.0))
+    with SimWorld(ROBOT, dh) as w:
+        for q in uniform_configs(ROBOT.limits, 5, seed=2):
+            w.set_joint_positions(q)
+            np.testing.assert_allclose(w.joint_positions(), q, atol=1e-12)
+            want = ROBOT.with_dh(dh).forward_kinematics(q)
+            np.testing.assert_allclose(w.hand_pose(), want, atol=1e-6)
+            for m in ROBOT.markers:
+                np.testing.assert_allclose(w.link_pose(f'marker_{m.name}'), want @ m.hand_T_marker, atol=1e-6)
+
+
+def test_markers_face_opposite_ways_palm_along_hand_z() -> None:
+    palm, back = (m.hand_T_marker for m in ROBOT.markers)
+    assert palm[2, 2] == pytest.approx(1.0) and back[2, 2] == pytest.approx(-1.0)
+    assert palm[2, 3] > back[2, 3]
+
+
+def test_marker_texture_has_quiet_zone_and_decodes() -> None:
+    img = marker_texture('DICT_4X4_50', 7, cell_px=10)
+    assert img.shape == (80, 80)
+    assert np.all(img[:10] == 255) and np.all(img[:, -10:] == 255)
+    _c, ids, _r = cv2.aruco.ArucoDetector(aruco_dictionary('DICT_4X4_50')).detectMarkers(img)
+    assert ids is not None and ids.ravel().tolist() == [7]
+
+
+def test_projection_matrix_maps_pixel_centres() -> None:
+    K = ROBOT.camera.K
+    p = gl_projection(K, 320, 240)
+    # A point on the optical axis through the principal point lands where the raster samples it.
+    ndc = p @ np.array([0.0, 0.0, -1.0, 1.0])
+    assert ndc[3] == pytest.approx(1.0)
+    assert np.all(np.isfinite(ndc))
+    with pytest.raises(ValueError, match='near < far'):
+        gl_projection(K, 320, 240, near=1.0, far=0.5)
+
+
+def _detections(world, intr, supersample, n, seed):
+    """(phi [deg], corner errors (4, 2)) of every detection over n box configurations."""
+    det = cv2.aruco.ArucoDetector(aruco_dictionary(ROBOT.marker_dictionary))
+    cam = ROBOT.camera_pose('left')
+    out = []
+    for q in uniform_configs(ROBOT.calibration_box, n, seed):
+        world.set_joint_positions(q)
+        gray = cv2.cvtColor(world.render(cam, intr, supersample=supersample), cv2.COLOR_RGB2GRAY)
+        corners, ids, _ = det.detectMarkers(gray)
+        if ids is None:
+            continue
+        truth, hand = world.marker_corners(), world.hand_pose()
+        for c, i in zip(corners, ids.ravel()):
+            spec = next(m for m in world.markers if m.placement.marker_id == int(i))
+            _r, phi = view_geometry(cam, hand @ spec.placement.hand_T_marker)
+            uv = project_points(truth[int(i)], cam, intr.K)
+            out.append((float(phi), refine_square_corners(gray, c.reshape(4, 2)) - uv))
+    return out
+
+
+def test_detected_corners_match_projection_with_published_K(world) -> None:
+    """Anti-aliased images: corners of markers within 45 deg of head-on are within 0.5 px."""
+    dets = _detections(world, ROBOT.camera, 2, 60, seed=3)
+    frontal = np.array([e for phi, e in dets if phi < 45.0])
+    assert len(frontal) >= 8, 'too few frontal detections to test'
+    assert np.abs(frontal).max() < 0.5
+    # No systematic offset (a half-pixel or y-flip mistake would show here).
+    bias = np.mean([e.mean(axis=0) for _phi, e in dets], axis=0)
+    assert np.all(np.abs(bias) < 0.1), bias
+
+
+def test_default_render_has_no_bias(world) -> None:
+    """Plain (aliased) renders: edges are only located to half a pixel, but without bias."""
+    dets = _detections(world, ROBOT.camera, 1, 40, seed=4)
+    errs = np.array([e for phi, e in dets if phi < 60.0])
+    assert len(errs) >= 8
+    assert np.all(np.abs(errs.reshape(-1, 2).mean(axis=0)) < 0.1)
+    assert np.median(np.abs(errs)) < 0.5
+
+
+def test_higher_resolution_keeps_field_of_view(world) -> None:
+    world.set_joint_positions(ROBOT.calibration_box.mean(axis=1))
+    cam = ROBOT.camera_pose('left')
+    small = world.render(cam, ROBOT.camera)
+    big = world.render(cam, ROBOT.camera.scaled(640, 480))
+    assert small.shape == (240, 320, 3) and big.shape == (480, 640, 3)
+    assert small.flags['C_CONTIGUOUS'] and small.dtype == np.uint8
+    down = cv2.resize(big, (320, 240), interpolation=cv2.INTER_AREA)
+    assert np.mean(np.abs(down.astype(int) - small.astype(int))) < 8.0
+
+
+def test_degrade_is_seeded_and_bounded() -> None:
+    img = np.full((20, 30, 3), 128, np.uint8)
+    a = degrade(img, 5.0, 1.0, np.random.default_rng(1))
+    b = degrade(img, 5.0, 1.0, np.random.default_rng(1))
+    np.testing.assert_array_equal(a, b)
+    assert a.dtype == np.uint8 and 2.0 < a.astype(float).std() < 8.0
+    np.testing.assert_array_equal(degrade(img), img)
+    with pytest.raises(ValueError, match='noise_std'):
+        degrade(img, -1.0)
+
+
+def test_bad_world_arguments_are_named() -> None:
+    with pytest.raises(ValueError, match='dh must be'):
+        SimWorld(ROBOT, np.zeros((6, 4)))
+    with pytest.raises(ValueError, match='marker_ids'):
+        SimWorld(ROBOT, marker_ids=[3, 3])
+    with pytest.raises(ValueError, match='unknown ArUco dictionary'):
+        SimWorld(ROBOT, marker_dictionary='DICT_NOPE')
+
+
+def test_two_worlds_coexist() -> None:
+    with SimWorld(ROBOT) as a, SimWorld(ROBOT) as b:
+        q = ROBOT.calibration_box[:, 0]
+        a.set_joint_positions(q)
+        assert not np.allclose(a.joint_positions(), b.joint_positions())

@@ -285,7 +285,7 @@ class MarkerDetector:
 
 
 def refine_corners_edges(gray: NDArray[np.uint8], corners: ArrayLike, cells: int = 6,
-                         max_shift_px: float = 1.5) -> NDArray[np.float64] | None:
+                         max_shift_px: float = 3.0, iterations: int = 2) -> NDArray[np.float64] | None:
     """Re-locate a marker's corners as intersections of its four fitted edge lines.
 
     ArUco's corners come from the thresholded contour and sit up to ~0.6 px inside the black
@@ -293,7 +293,8 @@ def refine_corners_edges(gray: NDArray[np.uint8], corners: ArrayLike, cells: int
     inside one cell. Edges carry far more evidence than corners: along each side, the profile
     across the edge is sampled (bilinear) at many points, the crossing of the mid level between
     the dark border cell and the bright surround is found, a line is fitted by total least squares
-    (one round of outlier rejection), and adjacent lines are intersected.
+    (one round of outlier rejection), and adjacent lines are intersected. A second pass re-centres
+    the search on the fitted lines.
 
     Parameters
     ----------
@@ -303,70 +304,112 @@ def refine_corners_edges(gray: NDArray[np.uint8], corners: ArrayLike, cells: int
     cells : int
         Cells across the marker including the black border (6 for 4x4 dictionaries).
     max_shift_px : float
-        Refuse the result if a corner moved further (then keep the initial corners).
+        Refuse the result if a corner moved further (then keep the initial corners). ArUco's
+        corner at an acute, aliased tip can be 2 px short of the true one, so this is generous;
+        a wrong edge fit moves corners much further.
+    iterations : int
+        Passes; each re-centres the edge search on the previous pass's lines.
 
     Returns
     -------
     ndarray, shape (4, 2), or None when an edge could not be measured.
     """
-    c = np.asarray(corners, dtype=float).reshape(4, 2)
-    centre = c.mean(axis=0)
-    img = np.asarray(gray, dtype=np.float32)
-    lines = []
-    for i in range(4):
-        a, b = c[i], c[(i + 1) % 4]
-        length = float(np.linalg.norm(b - a))
-        if not np.isfinite(length) or length < 4:
-            return None
-        u = (b - a) / length
-        n = np.array([-u[1], u[0]])
-        if np.dot(n, (a + b) / 2 - centre) < 0:
-            n = -n                                              # outward normal
-        cell = length / cells
-        w = float(np.clip(0.6 * cell, 1.5, 4.0))                # stay within the border cell
-        t0 = min(0.45, (w + 1.0) / length)                      # keep clear of the other edges
-        ts = np.linspace(t0, 1 - t0, max(5, int(0.8 * length)))
-        offs = np.arange(-w, w + 1e-9, 0.25)
-        pts = a + np.outer(ts * length, u)                      # (S, 2)
-        grid = pts[:, None, :] + offs[None, :, None] * n        # (S, O, 2)
-        prof = cv2.remap(img, grid[..., 0].astype(np.float32), grid[..., 1].astype(np.float32),
-                         cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        k = max(2, len(offs) // 5)
-        dark, bright = prof[:, :k].mean(1), prof[:, -k:].mean(1)
-        good = bright - dark > 20.0
-        mid = (dark + bright) / 2
-        above = prof >= mid[:, None]
-        # Dark-to-bright crossing nearest the current edge estimate, per sample line.
-        cost = np.where(~above[:, :-1] & above[:, 1:], np.abs(offs[:-1]), np.inf)
-        j = np.argmin(cost, axis=1)
-        rows = np.nonzero(good & np.isfinite(cost[np.arange(len(ts)), j]))[0]
-        if rows.size < 4:
-            return None
-        j = j[rows]
-        v0, v1 = prof[rows, j], prof[rows, j + 1]
-        o = offs[j] + (mid[rows] - v0) / (v1 - v0) * (offs[j + 1] - offs[j])
-        e = pts[rows] + o[:, None] * n
-        for _ in range(2):                                      # fit, drop outliers, refit
-            m = e.mean(0)
-            d = np.linalg.svd(e - m)[2][0]
-            nrm = np.array([-d[1], d[0]])
-            res = (e - m) @ nrm
-            keep = np.abs(res) <= max(3.0 * 1.4826 * np.median(np.abs(res)), 0.05)
-            if keep.sum() < 4:
-                break
-            e = e[keep]
-        lines.append((m, d))
-    out = np.empty((4, 2))
-    for i in range(4):
-        (p1, d1), (p2, d2) = lines[i - 1], lines[i]
-        a = np.column_stack([d1, -d2])
-        if abs(np.linalg.det(a)) < 1e-6:
-            return None
-        s = np.linalg.solve(a, p2 - p1)
-        out[i] = p1 + s[0] * d1
-    if not np.all(np.isfinite(out)) or np.max(np.linalg.norm(out - c, axis=1)) > max_shift_px:
+    c0 = np.asarray(corners, dtype=float).reshape(4, 2)
+    if not np.all(np.isfinite(c0)):
         return None
-    return out
+    img = gray if gray.dtype == np.float32 else np.asarray(gray, dtype=np.float32)
+    c = c0
+    for _ in range(max(1, int(iterations))):
+        # Later passes centre the search on the previous edges, which may have moved ~1 px.
+        refined = _edge_pass(img, c, cells)
+        if refined is None:
+            return None
+        c = refined
+    if np.max(np.linalg.norm(c - c0, axis=1)) > max_shift_px:
+        return None
+    return c
+
+
+_N_OFFSETS = 17          # samples across an edge (the profile is bilinear in between)
+_NEXT = {k: (np.arange(4) + k) % 4 for k in (1, 2, 3)}      # corner i -> corner i + k
+
+
+def _edge_pass(img: NDArray[np.float32], c: NDArray[np.float64], cells: int) -> NDArray[np.float64] | None:
+    """One pass of :func:`refine_corners_edges`, vectorised over the four edges."""
+    a = c
+    b = c[_NEXT[1]]
+    length = np.linalg.norm(b - a, axis=1)                      # (4,)
+    if np.any(length < 4):
+        return None
+    u = (b - a) / length[:, None]
+    n = np.stack([-u[:, 1], u[:, 0]], axis=1)
+    centre = c.mean(axis=0)
+    n *= np.where(np.sum(n * ((a + b) / 2 - centre), axis=1) < 0, -1.0, 1.0)[:, None]   # outward
+    # The border cell's depth across an edge is set by the marker's extent perpendicular to it
+    # (foreshortened on oblique views), not by the edge's own length.
+    opp = np.stack([c[_NEXT[2]], c[_NEXT[3]]], axis=1)                            # (4, 2, 2)
+    depth = np.abs(np.einsum('kij,kj->ki', opp - a[:, None], n).mean(axis=1))
+    w = np.clip(0.7 * depth / cells, 1.0, 4.0)                  # stay within the border cell
+    t0 = np.minimum(0.45, (w + 1.0) / length)                   # keep clear of the other edges
+    n_s = int(np.clip(0.8 * length.max(), 5, 400))
+    frac = np.linspace(0.0, 1.0, n_s)
+    ts = t0[:, None] + frac[None] * (1 - 2 * t0)[:, None]       # (4, S)
+    offs = np.linspace(-1.0, 1.0, _N_OFFSETS)[None] * w[:, None]                   # (4, O)
+    pts = a[:, None] + (ts * length[:, None])[..., None] * u[:, None]              # (4, S, 2)
+    grid = pts[:, :, None] + offs[:, None, :, None] * n[:, None, None]             # (4, S, O, 2)
+    g = grid.reshape(4 * n_s, _N_OFFSETS, 2).astype(np.float32)
+    prof = cv2.remap(img, g[..., 0], g[..., 1], cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_REPLICATE).reshape(4, n_s, _N_OFFSETS)
+    k = _N_OFFSETS // 5
+    dark, bright = prof[..., :k].mean(-1), prof[..., -k:].mean(-1)
+    mid = (dark + bright) / 2
+    above = prof >= mid[..., None]
+    # Dark-to-bright crossing nearest the current edge estimate, per sample line.
+    cost = np.where(~above[..., :-1] & above[..., 1:], np.abs(offs[:, None, :-1]), np.inf)
+    j = np.argmin(cost, axis=-1)                                                    # (4, S)
+    valid = (bright - dark > 20.0) & np.isfinite(np.take_along_axis(cost, j[..., None], -1)[..., 0])
+    v0 = np.take_along_axis(prof, j[..., None], -1)[..., 0]
+    v1 = np.take_along_axis(prof, j[..., None] + 1, -1)[..., 0]
+    o0 = np.take_along_axis(np.broadcast_to(offs[:, None], prof.shape), j[..., None], -1)[..., 0]
+    step = offs[:, 1:2] - offs[:, 0:1]
+    with np.errstate(divide='ignore', invalid='ignore'):
+        o = o0 + (mid - v0) / (v1 - v0) * step
+    e = pts + o[..., None] * n[:, None]                                            # (4, S, 2)
+    valid &= np.isfinite(o)
+    if np.any(valid.sum(1) < 4):
+        return None
+    mask = valid.astype(float)
+    for _ in range(2):                                          # fit, drop outliers, refit
+        m, d = _fit_lines(e, mask)
+        res = np.abs(np.einsum('ksj,kj->ks', e - m[:, None], np.stack([-d[:, 1], d[:, 0]], 1)))
+        srt = np.sort(np.where(mask > 0, res, np.inf), axis=1)   # masked samples sort last
+        mad = srt[np.arange(4), (mask.sum(1).astype(int) - 1) // 2]   # (lower) median
+        keep = (mask > 0) & (res <= np.maximum(3.0 * 1.4826 * mad, 0.05)[:, None])
+        if np.any(keep.sum(1) < 4):
+            break
+        mask = keep.astype(float)
+    m, d = _fit_lines(e, mask)
+    # Corner i is where the line of edge i-1 meets the line of edge i (2x2 solve by Cramer).
+    p1, d1 = m[_NEXT[3]], d[_NEXT[3]]
+    diff = m - p1
+    det = d1[:, 1] * d[:, 0] - d1[:, 0] * d[:, 1]
+    if np.any(np.abs(det) < 1e-6):
+        return None
+    s1 = (diff[:, 1] * d[:, 0] - diff[:, 0] * d[:, 1]) / det
+    out = p1 + s1[:, None] * d1
+    return out if np.all(np.isfinite(out)) else None
+
+
+def _fit_lines(e: NDArray[np.float64], mask: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Total-least-squares lines through masked point sets: centroids (K, 2), directions (K, 2)."""
+    wsum = mask.sum(1)
+    m = (e * mask[..., None]).sum(1) / wsum[:, None]
+    dx, dy = (e - m[:, None]).transpose(2, 0, 1)
+    cxx = (mask * dx * dx).sum(1)
+    cyy = (mask * dy * dy).sum(1)
+    cxy = (mask * dx * dy).sum(1)
+    theta = 0.5 * np.arctan2(2 * cxy, cxx - cyy)               # principal axis of the scatter
+    return m, np.stack([np.cos(theta), np.sin(theta)], axis=1)
 
 
 # --------------------------------------------------------------------------------------------
@@ -387,9 +430,17 @@ def _to_matrix(rvec: ArrayLike, tvec: ArrayLike) -> NDArray[np.float64]:
 
 
 def rotation_angle_deg(r_a: ArrayLike, r_b: ArrayLike) -> NDArray[np.float64]:
-    """Geodesic angle between rotations, shape (...) [deg]; inputs (..., 3, 3)."""
-    rel = np.asarray(r_a) @ np.swapaxes(np.asarray(r_b), -1, -2)
-    return np.degrees(Rotation.from_matrix(rel).magnitude())
+    """Geodesic angle between rotations, shape (...) [deg]; inputs (..., 3, 3).
+
+    ``atan2(|vee(R - R^T)| / 2, (tr R - 1) / 2)`` of ``R = R_a R_b^T``: accurate at every
+    angle (arccos of the trace alone loses precision near 0 and 180 deg) and far cheaper than a
+    Rotation round trip, which matters at three calls per marker per frame.
+    """
+    rel = np.asarray(r_a, dtype=float) @ np.swapaxes(np.asarray(r_b, dtype=float), -1, -2)
+    vee = np.stack([rel[..., 2, 1] - rel[..., 1, 2], rel[..., 0, 2] - rel[..., 2, 0],
+                    rel[..., 1, 0] - rel[..., 0, 1]], axis=-1)
+    cos = (np.trace(rel, axis1=-2, axis2=-1) - 1.0) / 2.0
+    return np.degrees(np.arctan2(np.linalg.norm(vee, axis=-1) / 2.0, cos))
 
 
 def _rms_error(obj: NDArray[np.float64], img: NDArray[np.float64], t: NDArray[np.float64],

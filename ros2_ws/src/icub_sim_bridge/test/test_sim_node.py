@@ -1,0 +1,241 @@
+"""The sim node in-process with a probe node: topics, motion, image layout, bad commands."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+
+from body_schema.robot import load_robot
+from builtin_interfaces.msg import Duration
+from geometry_msgs.msg import PoseStamped
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import CameraInfo, Image, JointState
+from std_msgs.msg import Float64MultiArray
+from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+from icub_sim_bridge.sim_node import SimNode
+
+ROBOT = load_robot()
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+def make_sim(ros, **params):
+    defaults = dict(real_time_factor=0.0, image_rate=10.0, perturb_seed=5)
+    defaults.update(params)
+    overrides = [Parameter(k, value=v) for k, v in defaults.items()]
+    return ros.add(SimNode(context=ros.context, parameter_overrides=overrides))
+
+
+class Probe:
+    """Collects the last message of every contract topic."""
+
+    def __init__(self, ros) -> None:
+        self.node = ros.node('probe')
+        self.last: dict[str, object] = {}
+        self.count: dict[str, int] = {}
+        self.joint_states: list[JointState] = []
+        topics = [('/clock', Clock, 10), ('/joint_states', JointState, 50),
+                  ('/body_schema/true', Float64MultiArray, LATCHED)]
+        for eye in ('left', 'right'):
+            topics += [(f'/camera/{eye}/image_raw', Image, qos_profile_sensor_data),
+                       (f'/camera/{eye}/camera_info', CameraInfo, LATCHED),
+                       (f'/camera/{eye}/pose', PoseStamped, LATCHED)]
+        for name, typ, qos in topics:
+            self.node.create_subscription(typ, name, self._cb(name), qos)
+        self.cmd = self.node.create_publisher(JointTrajectory, '/arm/command', 10)
+
+    def _cb(self, name):
+        def cb(msg):
+            self.last[name] = msg
+            self.count[name] = self.count.get(name, 0) + 1
+            if name == '/joint_states':
+                self.joint_states.append(msg)
+        return cb
+
+    def command(self, names, points, times=None) -> None:
+        msg = JointTrajectory()
+        msg.joint_names = list(names)
+        for k, p in enumerate(points):
+            pt = JointTrajectoryPoint(positions=[float(v) for v in p])
+            if times is not None:
+                pt.time_from_start = Duration(sec=int(times[k]), nanosec=int((times[k] % 1) * 1e9))
+            msg.points.append(pt)
+        self.cmd.publish(msg)
+
+    def q(self) -> np.ndarray:
+        return np.array(self.last['/joint_states'].position)
+
+    def sim_time(self) -> float:
+        c = self.last['/clock'].clock
+        return c.sec + c.nanosec * 1e-9
+
+
+def test_every_contract_topic_appears_with_the_right_content(ros) -> None:
+    sim = make_sim(ros)
+    probe = Probe(ros)
+    want = {'/clock', '/joint_states', '/body_schema/true'} | {
+        f'/camera/{e}/{t}' for e in ('left', 'right') for t in ('image_raw', 'camera_info', 'pose')}
+    ros.spin_until(lambda: want <= set(probe.last) and probe.count.get('/camera/left/image_raw', 0) >= 2,
+                   20.0, f'all contract topics; got {sorted(probe.last)}')
+    types = dict(sim.get_topic_names_and_types())
+    assert types['/arm/command'] == ['trajectory_msgs/msg/JointTrajectory']
+    assert types['/camera/left/image_raw'] == ['sensor_msgs/msg/Image']
+
+    js = probe.last['/joint_states']
+    assert list(js.name) == list(ROBOT.joint_names)
+    true = probe.last['/body_schema/true']
+    assert [d.label for d in true.layout.dim] == ['joints', 'params']
+    assert [d.size for d in true.layout.dim] == [7, 4]
+    table = np.array(true.data).reshape(7, 4)
+    np.testing.assert_allclose(table, sim.true_dh)
+    assert 0 < np.abs(table - ROBOT.dh).max() < np.radians(1.01)   # the small seeded perturbation
+
+    info = probe.last['/camera/left/camera_info']
+    assert info.distortion_model == 'plumb_bob' and list(info.d) == [0.0] * 5
+    np.testing.assert_allclose(np.reshape(info.k, (3, 3)), ROBOT.camera.K)
+    np.testing.assert_allclose(np.reshape(info.p, (3, 4))[:, :3], ROBOT.camera.K)
+    np.testing.assert_allclose(np.reshape(info.r, (3, 3)), np.eye(3))
+
+    pose = probe.last['/camera/left/pose']
+    assert pose.header.frame_id == 'root_link'
+    p = pose.pose.position
+    np.testing.assert_allclose([p.x, p.y, p.z], ROBOT.camera_pose('left')[:3, 3], atol=1e-12)
+
+
+def test_rgb8_layout_and_joint_state_rate(ros) -> None:
+    make_sim(ros, image_width=640, image_height=480, cameras=['left'])
+    probe = Probe(ros)
+    ros.spin_until(lambda: '/camera/left/image_raw' in probe.last and len(probe.joint_states) > 60,
+                   20.0, 'an image and 60 joint states')
+    img = probe.last['/camera/left/image_raw']
+    assert (img.encoding, img.width, img.height, img.step) == ('rgb8', 640, 480, 640 * 3)
+    assert len(img.data) == img.step * img.height and img.is_bigendian == 0
+    pixels = np.frombuffer(bytes(img.data), np.uint8).reshape(480, 640, 3)
+    assert pixels.std() > 10          # a scene, not a blank frame
+    info = probe.last['/camera/left/camera_info']
+    assert (info.width, info.height) == (640, 480) and info.header.stamp == img.header.stamp
+    stamps = np.array([m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for m in probe.joint_states])
+    assert np.all(np.diff(stamps) > 0)
+    assert 1.0 / np.median(np.diff(stamps)) >= 50.0
+
+
+def test_command_moves_arm_to_target_in_sim_time_at_bounded_speed(ros) -> None:
+    sim = make_sim(ros, max_joint_speed_deg=60.0, image_rate=5.0)
+    probe = Probe(ros)
+    ros.spin_until(lambda: '/joint_states' in probe.last, 10.0, 'joint states')
+    start = probe.q()
+    target = start + np.radians([-10.0, 15.0, -20.0, 25.0, 10.0, -10.0, 5.0])
+    t0 = probe.sim_time()
+    probe.command(ROBOT.joint_names, [target])
+    ros.spin_until(lambda: np.abs(probe.q() - target).max() < 1e-9, 20.0, 'the arm at its target')
+    elapsed = probe.sim_time() - t0
+    assert elapsed >= 25.0 / 60.0 - 0.02          # no joint faster than 60 deg/s
+    assert elapsed < 25.0 / 60.0 + 0.5
+    qs = np.array([m.position for m in probe.joint_states])
+    dts = np.diff([m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for m in probe.joint_states])
+    speeds = np.abs(np.diff(qs, axis=0)) / dts[:, None]
+    assert speeds.max() <= np.radians(60.0) * 1.001
+    # Holds there.
+    n = len(probe.joint_states)
+    ros.spin_until(lambda: len(probe.joint_states) > n + 20, 10.0, 'more joint states')
+    np.testing.assert_array_equal(probe.q(), target)
+    np.testing.assert_allclose(sim.world.joint_positions(), target, atol=1e-12)
+
+
+@pytest.mark.parametrize('names, points, what', [
+    (['r_shoulder_pitch', 'r_knee'], [[-0.5, 0.1]], 'unknown joint names'),
+    (['r_elbow'], [[float('nan')]], 'non-finite'),
+    (['r_elbow'], [], 'empty trajectory'),
+    (['r_elbow'], [[np.radians(150.0)]], 'outside the limits'),
+])
+def test_bad_commands_are_rejected_and_sim_keeps_running(ros, names, points, what) -> None:
+    sim = make_sim(ros, image_rate=0.0)
+    logged: list[str] = []
+    original = sim.get_logger().warning
+    sim.get_logger().warning = lambda msg, **kw: (logged.append(msg), original(msg, **kw))
+    probe = Probe(ros)
+    ros.spin_until(lambda: '/joint_states' in probe.last, 10.0, 'joint states')
+    before = probe.q()
+    t_before = probe.sim_time()
+    probe.command(names, points)
+    ros.spin_until(lambda: logged, 10.0, 'the rejection warning')
+    assert what in logged[0] and 'rejected /arm/command' in logged[0]
+    ros.spin_until(lambda: probe.sim_time() > t_before + 0.5, 10.0, 'sim time to go on')
+    np.testing.assert_array_equal(probe.q(), before)
+    # And a good command afterwards still works.
+    target = before.copy()
+    target[3] += 0.1
+    probe.command(ROBOT.joint_names, [target])
+    ros.spin_until(lambda: np.abs(probe.q() - target).max() < 1e-9, 10.0, 'the arm at a later target')
+
+
+def test_real_time_factor_one_follows_the_wall_clock(ros) -> None:
+    import time
+
+    make_sim(ros, real_time_factor=1.0, image_rate=0.0)
+    probe = Probe(ros)
+    ros.spin_until(lambda: '/clock' in probe.last, 10.0, 'clock')
+    s0, w0 = probe.sim_time(), time.monotonic()
+    ros.spin_until(lambda: time.monotonic() - w0 > 1.0, 5.0, 'one wall second')
+    rate = (probe.sim_time() - s0) / (time.monotonic() - w0)
+    assert 0.8 < rate < 1.1
+
+
+def test_projected_corners_match_detected_ones_over_the_wire(ros) -> None:
+    """Everything from the messages: image, CameraInfo K, camera pose, true DH, joint state."""
+    import cv2
+    from scipy.spatial.transform import Rotation
+
+    from body_schema.noise import view_geometry
+    from icub_sim_bridge.camera import project_points, refine_square_corners
+    from icub_sim_bridge.world import aruco_dictionary
+
+    make_sim(ros, supersample=2, cameras=['left'], max_joint_speed_deg=360.0)
+    probe = Probe(ros)
+    ros.spin_until(lambda: {'/camera/left/image_raw', '/camera/left/pose', '/body_schema/true',
+                            '/camera/left/camera_info'} <= set(probe.last), 20.0, 'image, pose, K, DH')
+    det = cv2.aruco.ArucoDetector(aruco_dictionary(ROBOT.marker_dictionary))
+    p = probe.last['/camera/left/pose'].pose
+    cam = np.eye(4)
+    cam[:3, :3] = Rotation.from_quat([p.orientation.x, p.orientation.y, p.orientation.z,
+                                      p.orientation.w]).as_matrix()
+    cam[:3, 3] = [p.position.x, p.position.y, p.position.z]
+    true = ROBOT.with_dh(np.reshape(probe.last['/body_schema/true'].data, (7, 4)))
+    errors = []
+    # Box configurations where a marker should face the eye within 35 deg (picked by FK).
+    qs = np.random.default_rng(11).uniform(ROBOT.calibration_box[:, 0], ROBOT.calibration_box[:, 1], (400, 7))
+    hands = true.forward_kinematics(qs)
+    facing = np.zeros(len(qs), bool)
+    for m in ROBOT.markers:
+        _r, phi = view_geometry(cam, hands @ m.hand_T_marker)
+        uv = project_points((hands @ m.hand_T_marker)[:, :3, 3], cam, ROBOT.camera.K)
+        facing |= (phi < 35.0) & np.all((uv > 30) & (uv < [290, 210]), axis=1)
+    for q in qs[facing][:4]:
+        probe.command(ROBOT.joint_names, [q])
+        ros.spin_until(lambda: np.abs(probe.q() - q).max() < 1e-9, 20.0, 'the arm at a test pose')
+        stamp_after = probe.last['/joint_states'].header.stamp
+        ros.spin_until(lambda: _t(probe.last['/camera/left/image_raw'].header.stamp) > _t(stamp_after),
+                       10.0, 'an image taken after settling')
+        img = probe.last['/camera/left/image_raw']
+        K = np.reshape(probe.last['/camera/left/camera_info'].k, (3, 3))
+        gray = cv2.cvtColor(np.frombuffer(bytes(img.data), np.uint8).reshape(img.height, img.width, 3),
+                            cv2.COLOR_RGB2GRAY)
+        corners, ids, _ = det.detectMarkers(gray)
+        hand = true.forward_kinematics(q)
+        for c, i in zip(corners if ids is not None else [], ids.ravel() if ids is not None else []):
+            m = next(m for m in ROBOT.markers if m.marker_id == int(i))
+            mk = hand @ m.hand_T_marker
+            _r, phi = view_geometry(cam, mk)
+            if phi < 45.0:
+                s = ROBOT.marker_side_length / 2
+                obj = np.array([[-s, s, 0], [s, s, 0], [s, -s, 0], [-s, -s, 0]])
+                uv = project_points(obj @ mk[:3, :3].T + mk[:3, 3], cam, K)
+                errors.append(np.abs(refine_square_corners(gray, c.reshape(4, 2)) - uv).max())
+    assert len(errors) >= 3, 'too few frontal detections'
+    assert max(errors) < 0.5, errors
+
+
+def _t(stamp) -> float:
+    return stamp.sec + stamp.nanosec * 1e-9

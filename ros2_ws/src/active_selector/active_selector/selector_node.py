@@ -309,11 +309,16 @@ class SelectorNode(Node):
         msg = (f'iteration {a.iteration}/{self.iterations} {self.planner.strategy.value}: '
                f'target [{" ".join(f"{v:.1f}" for v in np.degrees(a.target))}] deg, outcome {outcome} '
                f'({why}), movement {a.movement_deg:.1f} deg, selection {a.selection_seconds:.2f} s')
-        (self.get_logger().info if a.detected else self.get_logger().warning)(msg)
+        if a.detected:      # rclpy binds one severity to each logging call site
+            self.get_logger().info(msg)
+        else:
+            self.get_logger().warning(msg)
         record = {'iteration': a.iteration, 'strategy': self.planner.strategy.value, 'outcome': outcome,
                   'detected': a.detected, 'reason': why, 'target_deg': np.degrees(a.target).tolist(),
                   'reached_deg': np.degrees(a.reached).tolist(), 'movement_deg': a.movement_deg,
                   'selection_s': a.selection_seconds, 'discarded': self.planner.discarded,
+                  'move_sim_s': (self.t_settled if self.phase is Phase.AWAITING_OUTCOME else self.now()) - self.t_command,
+                  'outcome_sim_s': self.now() - self.t_settled if self.phase is Phase.AWAITING_OUTCOME else 0.0,
                   'sim_time': self.now()}
         self.pub_progress.publish(String(data=json.dumps(record)))
         if self.progress_file is not None:

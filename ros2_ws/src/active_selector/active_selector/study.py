@@ -1,0 +1,125 @@
+"""A ROS-free replica of the calibration loop, for choosing the selector's constants.
+
+The same pieces as the node graph, called directly: the PyBullet world renders the left eye at
+the selected configuration, the detector's pure module estimates the hand pose, the estimator's
+pure module updates, the planner learns the outcome. No motion is simulated (the arm is placed),
+so one iteration costs a render, a detection, an update and a selection. Used to choose gamma,
+delta, the arctan penalty and the occlusion kernel by measurement (``python -m
+active_selector.study --help``); the reported results always come from the real node graph.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import dataclass, replace
+from typing import Sequence
+
+import cv2
+import numpy as np
+
+from body_schema import ArmModel, load_robot, sampling
+from body_schema.acquisition import SelectorConfig
+from body_schema.metrics import PoseErrorEvaluator
+from body_schema.noise import ConstantNoise, NoiseModel, PoseDependentNoise
+from dh_estimator.estimator import EstimatorSettings, OnlineEstimator, Outcome
+
+from .planner import Planner, PlannerSettings
+
+__all__ = ['EpisodeResult', 'run_episode', 'main']
+
+
+@dataclass(frozen=True)
+class EpisodeResult:
+    position_mm: list[float]          # after each iteration (index 0: initial guess)
+    orientation_deg: list[float]
+    movement_deg: list[float]
+    discarded: int
+    seconds: float
+
+
+def run_episode(model: ArmModel, world: object, true_dh: np.ndarray, x0: np.ndarray,
+                settings: PlannerSettings, noise: NoiseModel, iterations: int,
+                start: np.ndarray, evaluator: PoseErrorEvaluator,
+                estimator_settings: EstimatorSettings = EstimatorSettings()) -> EpisodeResult:
+    """One calibration run of ``iterations`` attempts; errors scored after each."""
+    from marker_detector.detection import HandPoseEstimator
+
+    cam = model.camera_pose('left')
+    k = model.camera.K
+    detector = HandPoseEstimator(model, noise)
+    est = OnlineEstimator(model, x0, sampling.initial_covariance(model.n_joints), estimator_settings)
+    planner = Planner(model, noise, settings)
+    planner.start = start
+    pos, rot, mov = [evaluator(x0).position_mm], [evaluator(x0).orientation_deg], [0.0]
+    t0 = time.perf_counter()
+    for _ in range(iterations):
+        sel = planner.select(est.dh, est.P, cam)
+        theta = np.clip(sel.theta, model.limits[:, 0], model.limits[:, 1])
+        world.set_joint_positions(theta)
+        gray = cv2.cvtColor(world.render(cam, model.camera), cv2.COLOR_RGB2GRAY)
+        res = detector.process(gray, k, None, cam)
+        outcome = 'failed'
+        if res.success:
+            outcome = est.offer(theta, res.hand.pose, res.hand.covariance).value
+        a = planner.record(theta, theta, outcome, res.success, sel.seconds)
+        e = evaluator(est.dh)
+        pos.append(e.position_mm)
+        rot.append(e.orientation_deg)
+        mov.append(a.movement_deg)
+    return EpisodeResult(pos, rot, mov, planner.discarded, time.perf_counter() - t0)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
+    ap.add_argument('--strategy', default='al')
+    ap.add_argument('--iterations', type=int, default=50)
+    ap.add_argument('--seeds', type=int, default=3)
+    ap.add_argument('--gamma', type=float, default=0.01)
+    ap.add_argument('--delta', type=float, default=0.25)
+    ap.add_argument('--penalty-a', type=float, default=0.0)
+    ap.add_argument('--penalty-b', type=float, default=10.0)
+    ap.add_argument('--length-scale', type=float, default=0.1)
+    ap.add_argument('--a0', type=float, default=1.0)
+    ap.add_argument('--b0', type=float, default=1.0)
+    ap.add_argument('--occlusion-mode', default='paper')
+    ap.add_argument('--max-evals', type=int, default=2000)
+    ap.add_argument('--noise', default='pose_dependent')
+    ap.add_argument('--ekf-iterations', type=int, default=5)
+    args = ap.parse_args(argv)
+
+    from icub_sim_bridge.world import SimWorld
+
+    model = load_robot()
+    noise = PoseDependentNoise() if args.noise == 'pose_dependent' else ConstantNoise()
+    settings = PlannerSettings(SelectorConfig(strategy=args.strategy, gamma=args.gamma, delta=args.delta,
+                                              max_evals=args.max_evals),
+                               penalty_a=args.penalty_a, penalty_b=args.penalty_b,
+                               occlusion_length_scale=args.length_scale, occlusion_a0=args.a0,
+                               occlusion_b0=args.b0, occlusion_mode=args.occlusion_mode)
+    results = []
+    for seed in range(args.seeds):
+        true_dh = sampling.perturb_dh(model.dh, 1000 + seed, 0.004, np.radians(2.0))
+        x0 = sampling.perturb_dh(model.dh, seed)
+        evaluator = PoseErrorEvaluator(model.base, true_dh, model.calibration_box)
+        with SimWorld(model, true_dh, head_pose=model.eyes.head_pose) as world:
+            s = replace(settings, selector=replace(settings.selector, seed=seed))
+            r = run_episode(model, world, true_dh, x0, s, noise, args.iterations,
+                            model.calibration_box.mean(axis=1), evaluator,
+                            EstimatorSettings(iterations=args.ekf_iterations))
+        results.append(r)
+    pos = np.array([r.position_mm for r in results])
+    rot = np.array([r.orientation_deg for r in results])
+    out = {'args': vars(args),
+           'position_mm_final': float(np.mean(pos[:, -1])), 'orientation_deg_final': float(np.mean(rot[:, -1])),
+           'position_mm_median_final': float(np.median(pos[:, -1])),
+           'movement_deg': float(np.mean([r.movement_deg[-1] for r in results])),
+           'discarded': float(np.mean([r.discarded for r in results])),
+           'seconds_per_episode': float(np.mean([r.seconds for r in results]))}
+    print(json.dumps(out))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -39,7 +39,6 @@ HAND_SIZE = (0.07, 0.055, 0.025)
 _WHITE = (0.92, 0.92, 0.9, 1.0)
 _GREY = (0.35, 0.35, 0.38, 1.0)
 _SKIN = (0.75, 0.72, 0.68, 1.0)
-_FLOOR = (0.45, 0.42, 0.38, 1.0)
 
 # Link radii [m] of the segment each joint's link carries (the segment is drawn in <joint>_link).
 _LINK_RADIUS = {
@@ -137,9 +136,13 @@ class MarkerSpec:
         return np.array([[-s, s, 0], [s, s, 0], [s, -s, 0], [-s, -s, 0]])
 
 
-def _segment_visuals(a: float, d: float, radius: float, rgba: tuple) -> list[Visual]:
-    """Cylinders along the DH link: origin -> (0, 0, d) -> (a, 0, d), in the joint's moving frame."""
-    out = [Visual('sphere', (radius * 1.05,), rgba=_GREY)]
+def _segment_visuals(a: float, d: float, radius: float, rgba: tuple, joint_ball: bool = True) -> list[Visual]:
+    """Cylinders along the DH link: origin -> (0, 0, d) -> (a, 0, d), in the joint's moving frame.
+
+    ``joint_ball`` adds a sphere at the joint; spheres are the costliest shapes to rasterize, so
+    the caller leaves out those hidden in the torso or coinciding with another joint's.
+    """
+    out = [Visual('sphere', (radius * 1.05,), rgba=_GREY)] if joint_ball else []
     if abs(d) > 1e-4:
         out.append(Visual('cylinder', (radius, abs(d)), xyz_rpy_to_transform([0, 0, d / 2], [0, 0, 0]), rgba))
     if abs(a) > 1e-4:
@@ -185,7 +188,7 @@ class SimWorld:
     def __init__(self, robot: ArmModel, dh: ArrayLike | None = None, *,
                  marker_dictionary: str | None = None, marker_ids: Sequence[int] | None = None,
                  marker_side_length: float | None = None, head_pose: ArrayLike | None = None,
-                 physics_step: float = 0.002) -> None:
+                 physics_step: float = 0.005) -> None:
         self.robot = robot
         self.dh = np.array(robot.dh if dh is None else dh, dtype=float)
         if self.dh.shape != robot.dh.shape or not np.all(np.isfinite(self.dh)):
@@ -228,10 +231,13 @@ class SimWorld:
         with open(quad, 'w') as f:
             f.write(_grid_obj(MARKER_GRID))
         names = self.robot.joint_names
+        # A ball at joint i only where the chain has moved on since the previous ball (not inside
+        # the torso at the first joint, not twice at the shoulder's or the wrist's common point).
+        lengths = np.hypot(self.dh[:, 0], self.dh[:, 1])
+        ball = [False] + [bool(lengths[i - 1] > 0.02) for i in range(1, len(names))]
         visuals: dict[str, list[Visual]] = {
-            f'{j}_link': _segment_visuals(a, d, _LINK_RADIUS.get(j, 0.02), _WHITE)
-            for j, (a, d, _alpha, _off) in zip(names, self.dh)}
-        visuals[f'{names[-1]}_link'] = [Visual('sphere', (0.018,), rgba=_GREY)]
+            f'{j}_link': _segment_visuals(a, d, _LINK_RADIUS.get(j, 0.02), _WHITE, b)
+            for j, (a, d, _alpha, _off), b in zip(names, self.dh, ball)}
         visuals['hand'] = _hand_visuals(float(self.dh[-1, 0]))
         extra = []
         for spec in self.markers:
@@ -270,8 +276,9 @@ class SimWorld:
         """Static torso (around root_link) and a head behind the eyes."""
         c = self._client
         torso = [((0.12, 0.15, 0.32), (0.01, 0.0, 0.05), _WHITE),     # chest and belly
-                 ((0.10, 0.24, 0.08), (0.0, 0.0, -0.14), _GREY),      # hips
-                 ((12.0, 12.0, 0.01), (0.0, 0.0, -0.605), _FLOOR)]      # floor (the iCub stands ~0.6 m tall at the waist)
+                 ((0.10, 0.24, 0.08), (0.0, 0.0, -0.14), _GREY)]      # hips
+        # No floor: TinyRenderer's cost grows with covered pixels and a floor filling the view
+        # halved the frame rate; the light background suits the markers anyway.
         for size, xyz, rgba in torso:
             vs = c.createVisualShape(p.GEOM_BOX, halfExtents=[s / 2 for s in size], rgbaColor=rgba)
             c.createMultiBody(0, -1, vs, basePosition=xyz)
@@ -380,7 +387,10 @@ class SimWorld:
             w, h, view, proj, renderer=p.ER_TINY_RENDERER, flags=p.ER_NO_SEGMENTATION_MASK,
             shadow=0, lightDirection=[-1.0, 0.3, 1.5], lightAmbientCoeff=0.65,
             lightDiffuseCoeff=0.35, lightSpecularCoeff=0.0)[2]
-        return np.ascontiguousarray(np.asarray(rgba, dtype=np.uint8).reshape(h, w, 4)[:, :, :3])
+        import cv2
+
+        # cv2 drops the alpha channel into a contiguous array faster than a numpy strided copy.
+        return cv2.cvtColor(np.asarray(rgba, dtype=np.uint8).reshape(h, w, 4), cv2.COLOR_RGBA2RGB)
 
     # ----------------------------------------------------------------------------------------
 

@@ -32,7 +32,8 @@ from body_schema.robot import ArmModel
 
 from .detection import DetectorConfig, HandPoseEstimator, MarkerPose, gate_marker, rotation_angle_deg
 
-__all__ = ['Frame', 'Outcome', 'NoiseFit', 'collect', 'evaluate', 'fit_noise', 'summarize']
+__all__ = ['FLIP_DEG', 'Frame', 'Outcome', 'NoiseFit', 'collect', 'evaluate', 'fit_noise', 'summarize',
+           'time_frames', 'binned']
 
 
 @dataclass
@@ -51,6 +52,7 @@ class Frame:
     poses: list[MarkerPose]
     truth_view: dict[int, tuple[float, float, bool]]
     seconds: float
+    gray: NDArray[np.uint8] | None = None
 
 
 @dataclass
@@ -93,7 +95,7 @@ def _truth_view(frame_root_T_cam: NDArray[np.float64], truth: NDArray[np.float64
 
 def collect(model: ArmModel, world: Any, configs: NDArray[np.float64],
             views: Sequence[tuple[str, tuple[int, int]]], noise_std: float = 0.0, seed: int = 0,
-            config: DetectorConfig | None = None) -> list[Frame]:
+            config: DetectorConfig | None = None, keep_images: int = 0) -> list[Frame]:
     """Render every configuration in every view and run detection plus pose on it.
 
     Parameters
@@ -107,6 +109,8 @@ def collect(model: ArmModel, world: Any, configs: NDArray[np.float64],
         Additive Gaussian pixel noise [grey levels] (seeded), on top of the renderer's image.
     config : DetectorConfig, optional
         Used for the timed run (the study re-gates afterwards).
+    keep_images : int
+        Keep the grey image of the first ``keep_images`` configurations (for :func:`time_frames`).
 
     Returns
     -------
@@ -132,8 +136,29 @@ def collect(model: ArmModel, world: Any, configs: NDArray[np.float64],
             poses = [p if p.status == 'invalid' else replace(p, status='ok')
                      for p in res.markers + res.rejected]
             frames.append(Frame(i, eye, size, intr.K, root_T_cam, truth, poses,
-                                _truth_view(root_T_cam, truth, model, intr.K, size), dt))
+                                _truth_view(root_T_cam, truth, model, intr.K, size), dt,
+                                gray if i < keep_images else None))
     return frames
+
+
+def time_frames(frames: Sequence[Frame], estimator: HandPoseEstimator, repeats: int = 3) -> NDArray[np.float64]:
+    """Seconds of grey conversion plus :meth:`HandPoseEstimator.process` per kept image.
+
+    Each image is processed ``repeats`` times and the fastest run kept, so that another process
+    pre-empting this one does not count as detector time.
+    """
+    out = []
+    for f in frames:
+        if f.gray is None:
+            continue
+        rgb = np.ascontiguousarray(np.repeat(f.gray[..., None], 3, axis=2))
+        best = np.inf
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            estimator.process(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), f.k, None, f.root_T_cam)
+            best = min(best, time.perf_counter() - t0)
+        out.append(best)
+    return np.array(out)
 
 
 def evaluate(frames: Sequence[Frame], estimator: HandPoseEstimator, fusion: str | None = None) -> Outcome:
@@ -190,46 +215,70 @@ class NoiseFit:
     coverage_cn: tuple[float, float]
 
 
-def _fit_law(sq: NDArray[np.float64], r: NDArray[np.float64], phi: NDArray[np.float64],
-             dof: int = 3) -> tuple[NDArray[np.float64], float]:
-    """ML fit of ``v = a r^2 + b (phi-45)^2 + f`` to squared error norms ``sq ~ v chi2(dof)``.
+#: Smallest floors the fit may use: (0.1 mm)^2 and (0.03 deg)^2, far below any measured noise,
+#: so ``R`` stays positive definite even where the data put the floor at zero.
+MIN_FLOOR_POS = 1e-8
+MIN_FLOOR_ROT = float(np.radians(0.03) ** 2)
 
-    Returns the coefficients (a, b, f) and the mean negative log-likelihood per sample.
+
+def _fit_law(sq: NDArray[np.float64], r: NDArray[np.float64], phi: NDArray[np.float64],
+             min_floor: float, dof: int = 3) -> tuple[NDArray[np.float64], float]:
+    """ML fit of ``v = a r^2 + b (phi-45)^2 + floor`` to squared error norms ``sq ~ v chi2(dof)``.
+
+    Returns the coefficients (a, b, floor), with ``floor >= min_floor`` and a term set to exactly
+    zero when it contributes less than 0.1 % of the median variance, and the mean negative
+    log-likelihood per sample.
     """
     design = np.c_[r ** 2, (phi - 45.0) ** 2, np.ones_like(r)]
     # Start from non-negative least squares on sq / dof (unbiased for v but dominated by the
     # largest errors), then maximise the Gaussian likelihood, which weights each sample by 1/v.
     x0, _ = nnls(design, sq / dof)
-    scale = np.maximum(np.abs(design).mean(0), 1e-12)
-    x0 = np.maximum(x0, 1e-6 * max(float(np.mean(sq / dof)), 1e-300) / scale)
+    typical = max(float(np.median(sq / dof)), min_floor)
+    scale = np.maximum(np.median(design, axis=0), 1e-12)
+    x0 = np.maximum(x0, 1e-3 * typical / scale)
+
+    def variance(logx: NDArray[np.float64]) -> NDArray[np.float64]:
+        return design @ np.exp(logx) + min_floor
 
     def nll(logx: NDArray[np.float64]) -> float:
-        v = design @ np.exp(logx)
+        v = variance(logx)
         return float(np.mean(0.5 * dof * np.log(v) + 0.5 * sq / v))
 
-    lo = np.log(x0) - 25.0
-    hi = np.log(x0) + 25.0
-    best = minimize(nll, np.log(x0), method='L-BFGS-B', bounds=list(zip(lo, hi)))
+    lo = np.log(1e-9 * typical / scale)
+    hi = np.log(1e3 * typical / scale)
+    best = minimize(nll, np.clip(np.log(x0), lo, hi), method='L-BFGS-B', bounds=list(zip(lo, hi)))
     coef = np.exp(best.x)
-    # Coefficients pinned at the lower bound are effectively zero.
-    coef[best.x <= lo + 1.0] = 0.0
-    return coef, nll(np.log(np.maximum(coef, 1e-300)))
+    coef[coef * scale < 1e-3 * np.median(variance(best.x))] = 0.0      # negligible terms
+    coef[2] += min_floor
+    v = design[:, :2] @ coef[:2] + coef[2]
+    return coef, float(np.mean(0.5 * dof * np.log(v) + 0.5 * sq / v))
 
 
 def _gauss_nll(sq: NDArray[np.float64], v: NDArray[np.float64], dof: int = 3) -> float:
     return float(np.mean(0.5 * dof * np.log(2 * np.pi * v) + 0.5 * sq / v))
 
 
-def fit_noise(outcome: Outcome) -> NoiseFit:
-    """Fit the pose-dependent and constant models to the successful frames of ``outcome``."""
+#: Orientation error beyond which an estimate is a planar flip (a gross outlier), not noise [deg].
+FLIP_DEG = 30.0
+
+
+def fit_noise(outcome: Outcome, exclude_flips: bool = True) -> NoiseFit:
+    """Fit the pose-dependent and constant models to the successful frames of ``outcome``.
+
+    With ``exclude_flips`` the gross outliers (orientation error above :data:`FLIP_DEG`: the
+    wrong IPPE solution got through the ambiguity gate) are left out: a Gaussian covariance
+    cannot describe them, and one 150-degree flip would otherwise set the orientation law's
+    scale for every observation. Their rate is reported separately.
+    """
     ok = outcome.success & np.isfinite(outcome.r)
+    if exclude_flips:
+        ok &= np.degrees(outcome.rot_err) <= FLIP_DEG
     r, phi = outcome.r[ok], outcome.phi[ok]
     sq_p = outcome.pos_err[ok] ** 2
     sq_o = outcome.rot_err[ok] ** 2
-    (ap, bp, fp), _ = _fit_law(sq_p, r, phi)
-    (ao, bo, fo), _ = _fit_law(sq_o, r, phi)
-    # A zero floor can make R singular when b = 0; keep a tiny positive one.
-    pdn = PoseDependentNoise(ap, bp, ao, bo, max(fp, 1e-12), max(fo, 1e-12))
+    (ap, bp, fp), _ = _fit_law(sq_p, r, phi, MIN_FLOOR_POS)
+    (ao, bo, fo), _ = _fit_law(sq_o, r, phi, MIN_FLOOR_ROT)
+    pdn = PoseDependentNoise(ap, bp, ao, bo, fp, fo)
     cn = ConstantNoise(float(np.sqrt(np.mean(sq_p) / 3)), float(np.sqrt(np.mean(sq_o) / 3)))
     chi95 = 7.814727903251178                       # chi-square(3) 95 % quantile
 
@@ -254,6 +303,7 @@ def summarize(outcome: Outcome, frames: Sequence[Frame] | None = None) -> dict[s
     q = lambda a, p: float(np.percentile(a, p)) if a.size else float('nan')  # noqa: E731
     out = {
         'frames': float(len(s)),
+        'flips': float(np.sum(re > FLIP_DEG)),
         'success': float(s.mean()) if len(s) else float('nan'),
         'success_in_view': float(s[outcome.in_view].mean()) if outcome.in_view.any() else float('nan'),
         'in_view': float(outcome.in_view.mean()) if len(s) else float('nan'),

@@ -72,8 +72,8 @@ class DetectorConfig:
     """
 
     max_reprojection_error_px: float = 1.0
-    ambiguity_ratio: float = 1.5
-    ambiguity_margin_px: float = 0.05
+    ambiguity_ratio: float = 2.0
+    ambiguity_margin_px: float = 0.1
     ambiguity_min_angle_deg: float = 8.0
     refine_lm: bool = True
     fusion: str = 'best'

@@ -41,9 +41,10 @@ def test_fit_zero_coefficient_is_zero() -> None:
     r, phi = rng.uniform(0.15, 0.5, 3000), rng.uniform(0, 85, 3000)
     v = 3e-4 * r ** 2                                     # no angle dependence, no floor
     sq = (rng.normal(size=(3000, 3)) ** 2).sum(1) * v
-    coef, _ = _fit_law(sq, r, phi)
+    coef, _ = _fit_law(sq, r, phi, min_floor=1e-8)
     assert coef[0] == pytest.approx(3e-4, rel=0.1)
     assert coef[1] * 45 ** 2 < 0.15 * 3e-4 * 0.3 ** 2     # small against the distance term
+    assert coef[2] >= 1e-8 and coef[2] < 0.05 * 3e-4 * 0.3 ** 2
 
 
 def test_evaluate_measures_against_truth() -> None:

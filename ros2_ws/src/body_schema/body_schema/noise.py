@@ -141,12 +141,12 @@ class PoseDependentNoise(_Base):
     simulator's detector (see the marker_detector accuracy study in the README).
     """
 
-    a_pos: float = 2.8e-4
-    b_pos: float = 1.2e-8
-    a_rot: float = 1.3e-2
-    b_rot: float = 6.0e-7
-    floor_pos: float = 1e-6
-    floor_rot: float = 1e-5
+    a_pos: float = 2.1e-5
+    b_pos: float = 0.0
+    a_rot: float = 9.7e-4
+    b_rot: float = 2.3e-7
+    floor_pos: float = 1e-8
+    floor_rot: float = 2.7e-7
 
     def __post_init__(self) -> None:
         for name in ('a_pos', 'b_pos', 'a_rot', 'b_rot', 'floor_pos', 'floor_rot'):

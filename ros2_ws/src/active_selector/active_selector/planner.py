@@ -27,7 +27,7 @@ class PlannerSettings:
     selector: SelectorConfig = SelectorConfig()
     penalty_a: float = 0.0
     penalty_b: float = 10.0
-    occlusion_length_scale: float = 0.1
+    occlusion_length_scale: float = 0.5
     occlusion_a0: float = 1.0
     occlusion_b0: float = 1.0
     occlusion_mode: str = 'paper'

@@ -100,7 +100,7 @@ class SelectorNode(Node):
         p('penalty_b', 10.0, _float('Slope b of the arctan penalty [1/m]', 0.0, 1e6))
         p('algorithm', 'DIRECT_L', ParameterDescriptor(description=f'NLopt algorithm: {sorted(DIRECT_ALGORITHMS)}'))
         p('max_evals', 2000, _int('Cost evaluations per selection', 10, 10**7))
-        p('occlusion_length_scale', 0.1, _float('Occlusion kernel length scale (normalised joints)', 1e-4, 10.0))
+        p('occlusion_length_scale', 0.5, _float('Occlusion kernel length scale (normalised joints)', 1e-4, 10.0))
         p('occlusion_a0', 1.0, _float('Beta prior successes', 1e-6, 1e6))
         p('occlusion_b0', 1.0, _float('Beta prior failures', 1e-6, 1e6))
         p('occlusion_mode', 'paper', ParameterDescriptor(description="'paper' (C0 / eta) or 'expected'"))

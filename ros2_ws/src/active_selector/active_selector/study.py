@@ -80,7 +80,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument('--delta', type=float, default=0.25)
     ap.add_argument('--penalty-a', type=float, default=0.0)
     ap.add_argument('--penalty-b', type=float, default=10.0)
-    ap.add_argument('--length-scale', type=float, default=0.1)
+    ap.add_argument('--length-scale', type=float, default=0.5)
     ap.add_argument('--a0', type=float, default=1.0)
     ap.add_argument('--b0', type=float, default=1.0)
     ap.add_argument('--occlusion-mode', default='paper')

@@ -143,7 +143,7 @@ class PoseDependentNoise(_Base):
 
     a_pos: float = 2.1e-5
     b_pos: float = 0.0
-    a_rot: float = 9.7e-4
+    a_rot: float = 9.6e-4
     b_rot: float = 2.3e-7
     floor_pos: float = 1e-8
     floor_rot: float = 2.7e-7

@@ -26,11 +26,12 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import minimize, nnls
+from scipy.spatial.transform import Rotation
 
 from body_schema.noise import ConstantNoise, NoiseModel, PoseDependentNoise, view_geometry
 from body_schema.robot import ArmModel
 
-from .detection import DetectorConfig, HandPoseEstimator, MarkerPose, gate_marker, rotation_angle_deg
+from .detection import DetectorConfig, HandPoseEstimator, MarkerPose, gate_marker
 
 __all__ = ['FLIP_DEG', 'Frame', 'Outcome', 'NoiseFit', 'collect', 'evaluate', 'fit_noise', 'summarize',
            'time_frames', 'binned']
@@ -180,8 +181,6 @@ def evaluate(frames: Sequence[Frame], estimator: HandPoseEstimator, fusion: str 
         out.n_markers[i] = sum(p.ok for p in gated)
         out.pos_vec[i] = hand.pose[:3, 3] - f.truth[:3, 3]
         out.pos_err[i] = np.linalg.norm(out.pos_vec[i])
-        from scipy.spatial.transform import Rotation
-
         out.rot_vec[i] = Rotation.from_matrix(hand.pose[:3, :3] @ f.truth[:3, :3].T).as_rotvec()
         out.rot_err[i] = np.linalg.norm(out.rot_vec[i])
         # The marker the estimate relies on most: smallest predicted variance among those used.
@@ -330,8 +329,3 @@ def binned(outcome: Outcome, key: str, edges: Sequence[float]) -> list[tuple[str
             rows.append((label, int(m.sum()), float(np.median(outcome.pos_err[m]) * 1e3),
                          float(np.degrees(np.median(outcome.rot_err[m])))))
     return rows
-
-
-def rotation_error_deg(a: NDArray[np.float64], b: NDArray[np.float64]) -> float:
-    """Geodesic angle between the rotation parts of two poses [deg]."""
-    return float(rotation_angle_deg(a[:3, :3], b[:3, :3]))

@@ -25,7 +25,8 @@ robot, strategy ('random' | 'al' | 'ucsal' | 'ccsal'), iterations, seed, gamma, 
 penalty_a, penalty_b, algorithm, max_evals, occlusion_length_scale, occlusion_a0, occlusion_b0,
 occlusion_mode ('paper' | 'expected'), noise_model ('pose_dependent' | 'constant'),
 pdn_a_pos, pdn_b_pos, pdn_a_rot, pdn_b_rot, cn_sigma_pos, cn_sigma_rot_deg, eye,
-settle_tolerance (rad), settle_timeout (s, sim), outcome_timeout (s, sim), progress_file,
+settle_tolerance (rad), settle_timeout (s, sim), settle_time (s, sim), outcome_timeout (s, sim),
+progress_file,
 wait_report_period (s, wall).
 """
 from __future__ import annotations
@@ -114,6 +115,8 @@ class SelectorNode(Node):
         p('eye', 'left', ParameterDescriptor(description='Which eye the detector uses: left or right'))
         p('settle_tolerance', 0.002, _float('Max joint error counted as arrived [rad]', 1e-6, 0.5))
         p('settle_timeout', 30.0, _float('Sim seconds to reach a target before giving up', 0.1, 1e4))
+        p('settle_time', 0.1, _float('Sim seconds the arm rests before the attempt image '
+                                     '(match the estimator\'s static_window)', 0.0, 10.0))
         p('outcome_timeout', 5.0, _float('Sim seconds after settling to get an outcome', 0.1, 1e4))
         p('progress_file', '', ParameterDescriptor(description='JSON-lines file, one object per iteration'))
         p('wait_report_period', 2.0, _float('Wall seconds between "waiting for" reports', 0.1, 3600.0))
@@ -136,6 +139,7 @@ class SelectorNode(Node):
         self.settle_tol = gp('settle_tolerance')
         self.settle_timeout = gp('settle_timeout')
         self.outcome_timeout = gp('outcome_timeout')
+        self.settle_time = gp('settle_time')
         self.progress_file = Path(gp('progress_file')) if gp('progress_file') else None
         if self.progress_file is not None:
             self.progress_file.parent.mkdir(parents=True, exist_ok=True)
@@ -233,7 +237,7 @@ class SelectorNode(Node):
 
     def on_markers(self, msg: PoseArray) -> None:
         if self.phase is Phase.AWAITING_OUTCOME and self.detected is None \
-                and _stamp(msg.header.stamp) >= self.t_settled:
+                and _stamp(msg.header.stamp) >= self.t_settled + self.settle_time:
             self.detected = len(msg.poses) > 0
             if not self.detected:
                 self._finish_iteration('failed', 'no marker detected after settling')

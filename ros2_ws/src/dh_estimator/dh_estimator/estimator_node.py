@@ -9,6 +9,9 @@ Subscriptions
     Buffered; names are matched to the robot description's joints.
 /hand_pose : geometry_msgs/PoseWithCovarianceStamped
     Hand pose in root_link, stamp = image stamp, covariance from the detector's noise model.
+/arm/command : trajectory_msgs/JointTrajectory
+    The latest commanded target: with ``require_command`` only observations taken while the
+    arm rests at it are measurement attempts (not the start pose, not a pose passed on the way).
 
 Publications
 ------------
@@ -31,7 +34,8 @@ robot (str), initial_guess ('perturbed' | 'nominal' | 'file'), initial_seed (int
 initial_dh_file (str), width_length (m), width_angle_deg (deg), q_length (m^2), q_angle (rad^2),
 gate_probability, gate_warmup, iterations, noise_model ('message' | 'constant'), cn_sigma_pos (m),
 cn_sigma_rot_deg (deg), static_window (s), static_tolerance (rad), same_config_tolerance (rad),
-checkpoint_path (str), export_dir (str), export_on_shutdown (bool).
+require_command (bool), target_tolerance (rad), checkpoint_path (str), export_dir (str),
+export_on_shutdown (bool).
 """
 from __future__ import annotations
 
@@ -53,6 +57,7 @@ from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
+from trajectory_msgs.msg import JointTrajectory
 
 from body_schema import ekf as ekf_mod
 from body_schema import load_robot, sampling
@@ -118,6 +123,9 @@ class EstimatorNode(Node):
         p('static_window', 0.1, _float('The arm must be still this long before the image stamp [s]', 0.0, 5.0))
         p('static_tolerance', 1e-4, _float('Joint motion tolerated as still [rad]', 0.0, 0.1))
         p('same_config_tolerance', 1e-3, _float('Closer than this to the previous attempt = same configuration [rad]', 0.0, 0.5))
+        p('require_command', True, ParameterDescriptor(
+            description='Only use observations taken at the latest /arm/command target'))
+        p('target_tolerance', 0.005, _float('Max joint distance from the commanded target [rad]', 0.0, 0.5))
         p('checkpoint_path', '', ParameterDescriptor(description='State file rewritten after every update; resumed if it exists'))
         p('export_dir', '', ParameterDescriptor(description='Where ~/export and shutdown write the calibrated model'))
         p('export_on_shutdown', True, ParameterDescriptor(description='Export the calibrated model when the node stops'))
@@ -138,6 +146,9 @@ class EstimatorNode(Node):
         self.cn = ConstantNoise(gp('cn_sigma_pos'), np.radians(gp('cn_sigma_rot_deg')))
         self.static_window = gp('static_window')
         self.static_tol = gp('static_tolerance')
+        self.require_command = gp('require_command')
+        self.target_tol = gp('target_tolerance')
+        self.target: np.ndarray | None = None
         self.checkpoint = Path(gp('checkpoint_path')) if gp('checkpoint_path') else None
         self.export_dir = Path(gp('export_dir')) if gp('export_dir') else None
         self.export_on_shutdown = gp('export_on_shutdown')
@@ -154,6 +165,7 @@ class EstimatorNode(Node):
         self.pub_status = self.create_publisher(DiagnosticStatus, '/body_schema/update_status', 10)
         self.create_subscription(JointState, '/joint_states', self.on_joint_state, JOINT_STATES_QOS)
         self.create_subscription(PoseWithCovarianceStamped, '/hand_pose', self.on_hand_pose, 10)
+        self.create_subscription(JointTrajectory, '/arm/command', self.on_command, 10)
         self.create_service(Trigger, '~/export', self.on_export)
         self.publish_estimate()
         self.get_logger().info(f'estimating {self.model.n_params} DH parameters of {self.model.name} '
@@ -199,6 +211,15 @@ class EstimatorNode(Node):
         if self.pending:
             self._process_pending()
 
+    def on_command(self, msg: JointTrajectory) -> None:
+        names = list(msg.joint_names)
+        if not msg.points or any(n not in names for n in self.model.joint_names):
+            return                  # partial or empty commands are the simulator's to reject
+        last = msg.points[-1].positions
+        if len(last) != len(names):
+            return
+        self.target = np.array([last[names.index(n)] for n in self.model.joint_names], dtype=float)
+
     def on_hand_pose(self, msg: PoseWithCovarianceStamped) -> None:
         self.pending.append(msg)
         self._process_pending()
@@ -220,6 +241,8 @@ class EstimatorNode(Node):
         except StampOutOfRange as exc:
             self.get_logger().warning(f'hand pose at {t:.3f} s dropped: {exc}')
             return
+        if self.require_command and (self.target is None or np.max(np.abs(q - self.target)) > self.target_tol):
+            return                  # not at a commanded target: not a measurement attempt
         if not self.buffer.is_static(t, self.static_window, self.static_tol):
             self._status(t, q, 'moving', 'arm not still at the image stamp; observation not used')
             return

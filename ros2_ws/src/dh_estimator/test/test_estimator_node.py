@@ -31,7 +31,8 @@ def _hand_pose(t, pose, cov=1e-4):
 
 
 def _setup(ros, **params):
-    overrides = [Parameter(k, value=v) for k, v in {'initial_seed': 4, 'export_on_shutdown': False, **params}.items()]
+    overrides = [Parameter(k, value=v) for k, v in {'initial_seed': 4, 'export_on_shutdown': False,
+                                                    'require_command': False, **params}.items()]
     node = ros.add(EstimatorNode(context=ros.context, parameter_overrides=overrides))
     probe = ros.node('probe')
     js = probe.create_publisher(JointState, '/joint_states', 10)
@@ -90,7 +91,28 @@ def test_restart_from_checkpoint_is_identical(ros, tmp_path):
     assert ckpt.exists()
     restarted = ros.add(EstimatorNode(context=ros.context, parameter_overrides=[
         Parameter('initial_seed', value=99), Parameter('checkpoint_path', value=str(ckpt)),
-        Parameter('export_on_shutdown', value=False)]))
+        Parameter('export_on_shutdown', value=False), Parameter('require_command', value=False)]))
     np.testing.assert_array_equal(restarted.estimator.ekf.x, node.estimator.ekf.x)
     np.testing.assert_array_equal(restarted.estimator.ekf.P, node.estimator.ekf.P)
     assert restarted.estimator.counters == node.estimator.counters
+
+
+def test_only_commanded_targets_are_attempts(ros):
+    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+    node, js, hp, _ = _setup(ros, require_command=True)
+    probe = ros.node('commander')
+    cmd = probe.create_publisher(JointTrajectory, '/arm/command', 10)
+    ros.spin_until(lambda: cmd.get_subscription_count() > 0, 10.0, 'discovery of /arm/command')
+    start = np.mean(ARM.calibration_box, axis=1)
+    _feed_static(ros, js, start, 0.0, 1.0)
+    hp.publish(_hand_pose(0.9, ARM.forward_kinematics(start)))     # the start pose: no command yet
+    ros.spin_for(0.3)
+    assert node.estimator.counters['updates'] == 0
+    target = start + 0.1
+    cmd.publish(JointTrajectory(joint_names=list(ARM.joint_names),
+                                points=[JointTrajectoryPoint(positions=target.tolist())]))
+    ros.spin_until(lambda: node.target is not None, 5.0, 'the command')
+    _feed_static(ros, js, target, 1.0, 2.0)
+    hp.publish(_hand_pose(1.9, ARM.forward_kinematics(target)))
+    ros.spin_until(lambda: node.estimator.counters['updates'] == 1, 5.0, 'the update at the target')

@@ -61,6 +61,7 @@ from dh_estimator.messages import MessageFormatError, msg_to_covariance, msg_to_
 
 from .planner import Planner, PlannerSettings
 
+_CN = ConstantNoise()      # fitted CN defaults live in body_schema.noise
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 _PDN = PoseDependentNoise()
 
@@ -110,8 +111,8 @@ class SelectorNode(Node):
         p('pdn_b_pos', _PDN.b_pos, _float('Pose-dependent position variance per (phi-45)^2', 0.0, 1.0))
         p('pdn_a_rot', _PDN.a_rot, _float('Pose-dependent orientation variance per r^2', 0.0, 10.0))
         p('pdn_b_rot', _PDN.b_rot, _float('Pose-dependent orientation variance per (phi-45)^2', 0.0, 1.0))
-        p('cn_sigma_pos', 0.01, _float('CN position standard deviation [m]', 1e-6, 1.0))
-        p('cn_sigma_rot_deg', 3.0, _float('CN orientation standard deviation [deg]', 1e-4, 90.0))
+        p('cn_sigma_pos', _CN.sigma_pos, _float('CN position standard deviation [m]', 1e-6, 1.0))
+        p('cn_sigma_rot_deg', float(np.degrees(_CN.sigma_rot)), _float('CN orientation standard deviation [deg]', 1e-4, 90.0))
         p('eye', 'left', ParameterDescriptor(description='Which eye the detector uses: left or right'))
         p('settle_tolerance', 0.002, _float('Max joint error counted as arrived [rad]', 1e-6, 0.5))
         p('settle_timeout', 30.0, _float('Sim seconds to reach a target before giving up', 0.1, 1e4))

@@ -67,6 +67,7 @@ from .estimator import EstimatorSettings, OnlineEstimator, Outcome
 from .joint_buffer import JointStateBuffer, StampOutOfRange
 from .messages import covariance_to_msg, table_to_msg
 
+_CN = ConstantNoise()      # fitted CN defaults live in body_schema.noise
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 # Best effort matches any publisher; the deep queue keeps the rest window intact under bursts.
 JOINT_STATES_QOS = QoSProfile(depth=200, reliability=ReliabilityPolicy.BEST_EFFORT)
@@ -118,8 +119,8 @@ class EstimatorNode(Node):
         p('noise_model', 'message', ParameterDescriptor(
             description="'message': covariance of /hand_pose (the detector's pose-dependent model); "
                         "'constant': the CN baseline with cn_sigma_pos / cn_sigma_rot_deg"))
-        p('cn_sigma_pos', 0.01, _float('CN position standard deviation [m]', 1e-6, 1.0))
-        p('cn_sigma_rot_deg', 3.0, _float('CN orientation standard deviation [deg]', 1e-4, 90.0))
+        p('cn_sigma_pos', _CN.sigma_pos, _float('CN position standard deviation [m]', 1e-6, 1.0))
+        p('cn_sigma_rot_deg', float(np.degrees(_CN.sigma_rot)), _float('CN orientation standard deviation [deg]', 1e-4, 90.0))
         p('static_window', 0.1, _float('The arm must be still this long before the image stamp [s]', 0.0, 5.0))
         p('static_tolerance', 1e-4, _float('Joint motion tolerated as still [rad]', 0.0, 0.1))
         p('same_config_tolerance', 1e-3, _float('Closer than this to the previous attempt = same configuration [rad]', 0.0, 0.5))

@@ -247,9 +247,6 @@ class EstimatorNode(Node):
         if not self.buffer.is_static(t, self.static_window, self.static_tol):
             self._status(t, q, 'moving', 'arm not still at the image stamp; observation not used')
             return
-        if self.estimator.is_duplicate(q):
-            self.estimator.n_duplicates += 1
-            return                                   # the same static configuration: not new evidence
         try:
             pose = pose_msg_to_matrix(msg.pose.pose)
             if self.noise_mode == 'constant':
@@ -263,6 +260,8 @@ class EstimatorNode(Node):
             self.get_logger().warning(f'hand pose at {t:.3f} s rejected as invalid input: {exc}')
             self._status(t, q, 'invalid', str(exc))
             return
+        if outcome is Outcome.DUPLICATE:
+            return                                   # the same static configuration: not new evidence
         f = self.estimator.ekf
         if outcome is Outcome.REJECTED:
             self.get_logger().warning(f'outlier rejected at {t:.3f} s: Mahalanobis distance '

@@ -22,14 +22,17 @@ __all__ = ['PlannerSettings', 'Attempt', 'Planner']
 
 @dataclass(frozen=True)
 class PlannerSettings:
-    """Everything a strategy needs beyond the estimate (see body_schema.acquisition)."""
+    """Everything a strategy needs beyond the estimate (see body_schema.acquisition).
+
+    Defaults chosen by measurement with :mod:`active_selector.study` (README, active_selector).
+    """
 
     selector: SelectorConfig = SelectorConfig()
-    penalty_a: float = 0.0
+    penalty_a: float = 0.05
     penalty_b: float = 10.0
     occlusion_length_scale: float = 0.5
     occlusion_a0: float = 1.0
-    occlusion_b0: float = 1.0
+    occlusion_b0: float = 2.0
     occlusion_mode: str = 'paper'
 
 

@@ -62,6 +62,7 @@ from dh_estimator.messages import MessageFormatError, msg_to_covariance, msg_to_
 from .planner import Planner, PlannerSettings
 
 _CN = ConstantNoise()      # fitted CN defaults live in body_schema.noise
+_DEF = PlannerSettings()   # measured selector defaults live in the planner
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 _PDN = PoseDependentNoise()
 
@@ -96,16 +97,16 @@ class SelectorNode(Node):
         p('strategy', 'al', ParameterDescriptor(description="'random', 'al', 'ucsal' or 'ccsal'"))
         p('iterations', 50, _int('Iterations (measurement attempts) of the run', 1, 100000))
         p('seed', 0, _int('Seed of the random strategy and randomised DIRECT', 0, 2**31 - 1))
-        p('gamma', 0.01, _float('UCSAL weight of the normalised L1 movement', 0.0, 1e9))
-        p('delta', 0.25, _float('CCSAL half-width of the box around the previous configuration (normalised)', 1e-6, 1.0))
-        p('penalty_a', 0.0, _float('Weight a of the a*arctan(b*p_x) penalty on hands behind the body', 0.0, 1e6))
-        p('penalty_b', 10.0, _float('Slope b of the arctan penalty [1/m]', 0.0, 1e6))
-        p('algorithm', 'DIRECT_L', ParameterDescriptor(description=f'NLopt algorithm: {sorted(DIRECT_ALGORITHMS)}'))
-        p('max_evals', 2000, _int('Cost evaluations per selection', 10, 10**7))
-        p('occlusion_length_scale', 0.5, _float('Occlusion kernel length scale (normalised joints)', 1e-4, 10.0))
-        p('occlusion_a0', 1.0, _float('Beta prior successes', 1e-6, 1e6))
-        p('occlusion_b0', 1.0, _float('Beta prior failures', 1e-6, 1e6))
-        p('occlusion_mode', 'paper', ParameterDescriptor(description="'paper' (C0 / eta) or 'expected'"))
+        p('gamma', _DEF.selector.gamma, _float('UCSAL weight of the normalised L1 movement', 0.0, 1e9))
+        p('delta', _DEF.selector.delta, _float('CCSAL half-width of the box around the previous configuration (normalised)', 1e-6, 1.0))
+        p('penalty_a', _DEF.penalty_a, _float('Weight a of the a*arctan(b*p_x) penalty on hands behind the body', 0.0, 1e6))
+        p('penalty_b', _DEF.penalty_b, _float('Slope b of the arctan penalty [1/m]', 0.0, 1e6))
+        p('algorithm', _DEF.selector.algorithm, ParameterDescriptor(description=f'NLopt algorithm: {sorted(DIRECT_ALGORITHMS)}'))
+        p('max_evals', _DEF.selector.max_evals, _int('Cost evaluations per selection', 10, 10**7))
+        p('occlusion_length_scale', _DEF.occlusion_length_scale, _float('Occlusion kernel length scale (normalised joints)', 1e-4, 10.0))
+        p('occlusion_a0', _DEF.occlusion_a0, _float('Beta prior successes', 1e-6, 1e6))
+        p('occlusion_b0', _DEF.occlusion_b0, _float('Beta prior failures', 1e-6, 1e6))
+        p('occlusion_mode', _DEF.occlusion_mode, ParameterDescriptor(description="'paper' (C0 / eta) or 'expected'"))
         p('noise_model', 'pose_dependent', ParameterDescriptor(description="R predicted by 'pose_dependent' or 'constant'"))
         p('pdn_a_pos', _PDN.a_pos, _float('Pose-dependent position variance per r^2', 0.0, 1.0))
         p('pdn_b_pos', _PDN.b_pos, _float('Pose-dependent position variance per (phi-45)^2', 0.0, 1.0))

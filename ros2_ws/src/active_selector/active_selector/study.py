@@ -29,6 +29,8 @@ from .planner import Planner, PlannerSettings
 
 __all__ = ['EpisodeResult', 'run_episode', 'main']
 
+_DEF = PlannerSettings()
+
 
 @dataclass(frozen=True)
 class EpisodeResult:
@@ -76,15 +78,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument('--strategy', default='al')
     ap.add_argument('--iterations', type=int, default=50)
     ap.add_argument('--seeds', type=int, default=3)
-    ap.add_argument('--gamma', type=float, default=0.01)
-    ap.add_argument('--delta', type=float, default=0.25)
-    ap.add_argument('--penalty-a', type=float, default=0.0)
-    ap.add_argument('--penalty-b', type=float, default=10.0)
-    ap.add_argument('--length-scale', type=float, default=0.5)
-    ap.add_argument('--a0', type=float, default=1.0)
-    ap.add_argument('--b0', type=float, default=1.0)
-    ap.add_argument('--occlusion-mode', default='paper')
-    ap.add_argument('--max-evals', type=int, default=2000)
+    ap.add_argument('--gamma', type=float, default=_DEF.selector.gamma)
+    ap.add_argument('--delta', type=float, default=_DEF.selector.delta)
+    ap.add_argument('--penalty-a', type=float, default=_DEF.penalty_a)
+    ap.add_argument('--penalty-b', type=float, default=_DEF.penalty_b)
+    ap.add_argument('--length-scale', type=float, default=_DEF.occlusion_length_scale)
+    ap.add_argument('--a0', type=float, default=_DEF.occlusion_a0)
+    ap.add_argument('--b0', type=float, default=_DEF.occlusion_b0)
+    ap.add_argument('--occlusion-mode', default=_DEF.occlusion_mode)
+    ap.add_argument('--max-evals', type=int, default=_DEF.selector.max_evals)
     ap.add_argument('--noise', default='pose_dependent')
     ap.add_argument('--ekf-iterations', type=int, default=5)
     args = ap.parse_args(argv)

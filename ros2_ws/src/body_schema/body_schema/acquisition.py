@@ -191,10 +191,10 @@ class SelectorConfig:
     """
 
     strategy: Strategy = Strategy.AL
-    gamma: float = 0.01
-    delta: float = 0.25
+    gamma: float = 0.005
+    delta: float = 0.2
     algorithm: str = 'DIRECT_L'
-    max_evals: int = 2000
+    max_evals: int = 1000
     seed: int = 0
 
     def __post_init__(self) -> None:

@@ -182,12 +182,14 @@ def pose_jacobian_from_frames(frames: ArrayLike) -> NDArray[np.float64]:
     x_c = f[:, 1:, :3, 0]                               # (N, L, 3) child x axes
     o_c = f[:, 1:, :3, 3]
     n, n_links = z_p.shape[:2]
+    # Both moment arms in one cross product: x_c x (p - o_c) for alpha, z_p x (p - o_p) for offset.
+    arms = _cross(np.concatenate([x_c, z_p], axis=1), np.concatenate([p - o_c, p - o_p], axis=1))
     jac = np.zeros((n, n_links, PARAMS_PER_LINK, 6))
     jac[:, :, 0, :3] = x_c                              # a
     jac[:, :, 1, :3] = z_p                              # d
-    jac[:, :, 2, :3] = _cross(x_c, p - o_c)           # alpha
+    jac[:, :, 2, :3] = arms[:, :n_links]                # alpha
     jac[:, :, 2, 3:] = x_c
-    jac[:, :, 3, :3] = _cross(z_p, p - o_p)           # offset
+    jac[:, :, 3, :3] = arms[:, n_links:]                # offset
     jac[:, :, 3, 3:] = z_p
     jac = jac.reshape(n, n_links * PARAMS_PER_LINK, 6).transpose(0, 2, 1)
     return jac[0] if single else jac

@@ -56,6 +56,12 @@ def view_geometry(camera_pose: ArrayLike, marker_pose: ArrayLike) -> tuple[NDArr
     return r, np.degrees(np.arccos(np.clip(cos_phi, -1.0, 1.0)))
 
 
+def _assemble(var_pos: ArrayLike, var_rot: ArrayLike) -> NDArray[np.float64]:
+    """``diag(s_p^2 I3, s_o^2 I3)`` for variances of shape (...) -> (..., 6, 6)."""
+    vp, vo = np.broadcast_arrays(np.asarray(var_pos, dtype=float), np.asarray(var_rot, dtype=float))
+    return np.stack([vp, vp, vp, vo, vo, vo], axis=-1)[..., None] * np.eye(6)
+
+
 class NoiseModel(Protocol):
     """Anything that predicts the 6x6 covariance of a marker-based hand-pose observation."""
 
@@ -87,13 +93,7 @@ class _Base:
         -------
         ndarray, shape (..., 6, 6)
         """
-        vp, vo = self.variances(r, phi_deg)
-        vp, vo = np.broadcast_arrays(vp, vo)
-        diag = np.concatenate([np.repeat(vp[..., None], 3, -1), np.repeat(vo[..., None], 3, -1)], -1)
-        out = np.zeros(diag.shape + (6,))
-        idx = np.arange(6)
-        out[..., idx, idx] = diag
-        return out
+        return _assemble(*self.variances(r, phi_deg))
 
     def hand_covariance(self, camera_pose: ArrayLike, hand_pose: ArrayLike,
                         markers: Sequence[MarkerPlacement]) -> NDArray[np.float64]:
@@ -121,15 +121,16 @@ class _Base:
         poses = hand[..., None, :, :] @ mk                          # (..., M, 4, 4)
         r, phi = view_geometry(camera_pose, poses)                  # (..., M)
         phi = np.minimum(phi, MAX_VIEW_ANGLE_DEG)
-        vp, _ = self.variances(r, phi)
-        vp = np.where(phi < MAX_VIEW_ANGLE_DEG, vp, np.inf)
-        best = np.argmin(vp, axis=-1)
+        vp, vo = np.broadcast_arrays(*self.variances(r, phi))
+        rank = np.where(phi < MAX_VIEW_ANGLE_DEG, vp, np.inf)
+        if hand.ndim == 2:          # one pose: plain indexing (this runs in every cost evaluation)
+            best = int(np.argmin(rank)) if np.isfinite(rank.min()) else int(np.argmin(r))
+            return _assemble(vp[best], vo[best])
+        best = np.argmin(rank, axis=-1)
         # No marker facing the camera: fall back to the nearest one seen edge-on.
-        best = np.where(np.isinf(np.take_along_axis(vp, best[..., None], -1)[..., 0]),
-                        np.argmin(r, axis=-1), best)
-        r_b = np.take_along_axis(r, best[..., None], -1)[..., 0]
-        phi_b = np.take_along_axis(phi, best[..., None], -1)[..., 0]
-        return self.covariance(r_b, phi_b)
+        best = np.where(np.isinf(np.take_along_axis(rank, best[..., None], -1)[..., 0]),
+                        np.argmin(r, axis=-1), best)[..., None]
+        return _assemble(np.take_along_axis(vp, best, -1)[..., 0], np.take_along_axis(vo, best, -1)[..., 0])
 
 
 @dataclass(frozen=True)

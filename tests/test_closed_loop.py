@@ -4,7 +4,6 @@ One SingleThreadedExecutor, its own context and domain id. Ten AL iterations mus
 exactly one outcome, and the estimate's average position error (against the simulated robot's
 real table) must drop at least threefold from the initial guess.
 """
-import numpy as np
 from rclpy.parameter import Parameter
 
 from active_selector.selector_node import SelectorNode

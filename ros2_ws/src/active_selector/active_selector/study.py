@@ -23,7 +23,7 @@ from body_schema import ArmModel, load_robot, sampling
 from body_schema.acquisition import SelectorConfig
 from body_schema.metrics import PoseErrorEvaluator
 from body_schema.noise import ConstantNoise, NoiseModel, PoseDependentNoise
-from dh_estimator.estimator import EstimatorSettings, OnlineEstimator, Outcome
+from dh_estimator.estimator import EstimatorSettings, OnlineEstimator
 
 from .planner import Planner, PlannerSettings
 

@@ -24,6 +24,7 @@ def run(iterations: int = 8) -> dict[str, float]:
     from rclpy.parameter import Parameter
     from std_msgs.msg import String
 
+    from body_schema.noise import PoseDependentNoise
     from dh_estimator.estimator_node import EstimatorNode
     from icub_sim_bridge.sim_node import SimNode
     from icub_sim_bridge.world import SimWorld
@@ -68,7 +69,7 @@ def run(iterations: int = 8) -> dict[str, float]:
 
     # Capture and detection, timed on the same configurations outside the executor.
     cam = model.camera_pose('left')
-    det = HandPoseEstimator(model, __import__('body_schema').noise.PoseDependentNoise())
+    det = HandPoseEstimator(model, PoseDependentNoise())
     cap, dt = [], []
     with SimWorld(model, sim.true_dh, head_pose=model.eyes.head_pose) as world:
         for q in reached:

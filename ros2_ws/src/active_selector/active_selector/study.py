@@ -41,7 +41,7 @@ class EpisodeResult:
     seconds: float
 
 
-def run_episode(model: ArmModel, world: object, true_dh: np.ndarray, x0: np.ndarray,
+def run_episode(model: ArmModel, world: object, x0: np.ndarray,
                 settings: PlannerSettings, noise: NoiseModel, iterations: int,
                 start: np.ndarray, evaluator: PoseErrorEvaluator,
                 estimator_settings: EstimatorSettings = EstimatorSettings()) -> EpisodeResult:
@@ -107,7 +107,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         evaluator = PoseErrorEvaluator(model.base, true_dh, model.calibration_box)
         with SimWorld(model, true_dh, head_pose=model.eyes.head_pose) as world:
             s = replace(settings, selector=replace(settings.selector, seed=seed))
-            r = run_episode(model, world, true_dh, x0, s, noise, args.iterations,
+            r = run_episode(model, world, x0, s, noise, args.iterations,
                             model.calibration_box.mean(axis=1), evaluator,
                             EstimatorSettings(iterations=args.ekf_iterations))
         results.append(r)

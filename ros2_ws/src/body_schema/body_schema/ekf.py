@@ -12,7 +12,7 @@ hand pose; :class:`HandPoseModel` supplies ``h``, its Jacobian and an SO(3)-awar
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
 import numpy as np
@@ -224,18 +224,30 @@ class HandPoseModel:
 
     base: NDArray[np.float64]
     n_links: int
+    # h and H are evaluated at the same (x, q) in every linearisation: keep the last frames.
+    _frames: dict[bytes, NDArray[np.float64]] = field(default_factory=dict, init=False,
+                                                      repr=False, compare=False)
 
     def table(self, x: ArrayLike) -> NDArray[np.float64]:
         """The state as a DH table, shape (L, 4)."""
         return np.asarray(x, dtype=float).reshape(self.n_links, kinematics.PARAMS_PER_LINK)
 
+    def frames(self, x: ArrayLike, q: ArrayLike) -> NDArray[np.float64]:
+        """All chain frames at ``(x, q)``, shape (L + 1, 4, 4); the last evaluation is cached."""
+        x, q = np.asarray(x, dtype=float), np.asarray(q, dtype=float)
+        key = x.tobytes() + q.tobytes()
+        if key not in self._frames:
+            self._frames.clear()
+            self._frames[key] = kinematics.chain_frames(self.base, self.table(x), q)
+        return self._frames[key]
+
     def hx(self, x: ArrayLike, q: ArrayLike) -> NDArray[np.float64]:
         """Predicted hand pose, shape (4, 4)."""
-        return kinematics.forward_kinematics(self.base, self.table(x), q)
+        return self.frames(x, q)[-1]
 
     def jacobian(self, x: ArrayLike, q: ArrayLike) -> NDArray[np.float64]:
         """``dh/dx``, shape (6, 4 L)."""
-        return kinematics.pose_jacobian_dh(self.base, self.table(x), q)
+        return kinematics.pose_jacobian_from_frames(self.frames(x, q))
 
     @staticmethod
     def residual(z: ArrayLike, hx: ArrayLike) -> NDArray[np.float64]:
@@ -253,15 +265,5 @@ class HandPoseModel:
         q = _finite('joint configuration', np.asarray(q, dtype=float))
         if q.shape != (self.n_links,):
             raise InvalidInputError(f'joint configuration must have shape ({self.n_links},), got {q.shape}')
-        # h and H are evaluated at the same state: compute the chain's frames once for both.
-        cache: dict[bytes, NDArray[np.float64]] = {}
-
-        def frames(x: NDArray[np.float64]) -> NDArray[np.float64]:
-            key = x.tobytes()
-            if key not in cache:
-                cache.clear()
-                cache[key] = kinematics.chain_frames(self.base, self.table(x), q)
-            return cache[key]
-
-        return ekf.update(pose, lambda x: kinematics.pose_jacobian_from_frames(frames(x)),
-                          lambda x: frames(x)[-1], R=R, residual=self.residual, iterations=iterations)
+        return ekf.update(pose, self.jacobian, self.hx, R=R, args=(q,), hx_args=(q,),
+                          residual=self.residual, iterations=iterations)

@@ -56,8 +56,8 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from body_schema import load_robot
 from body_schema.acquisition import DIRECT_ALGORITHMS, SelectorConfig
 from body_schema.noise import ConstantNoise, PoseDependentNoise
-from dh_estimator.estimator_node import pose_msg_to_matrix
-from dh_estimator.messages import MessageFormatError, msg_to_covariance, msg_to_table
+from dh_estimator.messages import (MessageFormatError, msg_to_covariance, msg_to_table, pose_msg_to_matrix,
+                                   stamp_to_seconds)
 
 from .planner import Planner, PlannerSettings
 
@@ -81,10 +81,6 @@ def _float(desc: str, lo: float, hi: float) -> ParameterDescriptor:
 
 def _int(desc: str, lo: int, hi: int) -> ParameterDescriptor:
     return ParameterDescriptor(description=desc, integer_range=[IntegerRange(from_value=lo, to_value=hi)])
-
-
-def _stamp(s: Any) -> float:
-    return s.sec + 1e-9 * s.nanosec
 
 
 class SelectorNode(Node):
@@ -215,7 +211,7 @@ class SelectorNode(Node):
             return
         if not np.all(np.isfinite(q)):
             return
-        self.q_prev, self.q, self.q_time = self.q, q, _stamp(msg.header.stamp)
+        self.q_prev, self.q, self.q_time = self.q, q, stamp_to_seconds(msg.header.stamp)
         if self.phase is Phase.MOVING:
             self._check_settled()
 
@@ -239,7 +235,7 @@ class SelectorNode(Node):
 
     def on_markers(self, msg: PoseArray) -> None:
         if self.phase is Phase.AWAITING_OUTCOME and self.detected is None \
-                and _stamp(msg.header.stamp) >= self.t_settled + self.settle_time:
+                and stamp_to_seconds(msg.header.stamp) >= self.t_settled + self.settle_time:
             self.detected = len(msg.poses) > 0
             if not self.detected:
                 self._finish_iteration('failed', 'no marker detected after settling')

@@ -53,7 +53,6 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
@@ -65,7 +64,7 @@ from body_schema.noise import ConstantNoise
 
 from .estimator import EstimatorSettings, OnlineEstimator, Outcome
 from .joint_buffer import JointStateBuffer, StampOutOfRange
-from .messages import covariance_to_msg, table_to_msg
+from .messages import covariance_to_msg, pose_msg_to_matrix, stamp_to_seconds, table_to_msg
 
 _CN = ConstantNoise()      # fitted CN defaults live in body_schema.noise
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -73,25 +72,9 @@ LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability
 JOINT_STATES_QOS = QoSProfile(depth=200, reliability=ReliabilityPolicy.BEST_EFFORT)
 
 
-def _stamp(msg_stamp: Any) -> float:
-    return msg_stamp.sec + 1e-9 * msg_stamp.nanosec
-
-
 def _float(desc: str, lo: float, hi: float) -> ParameterDescriptor:
     return ParameterDescriptor(description=desc,
                                floating_point_range=[FloatingPointRange(from_value=lo, to_value=hi)])
-
-
-def pose_msg_to_matrix(pose: Any) -> np.ndarray:
-    """geometry_msgs/Pose -> (4, 4); raises ValueError on NaN or a zero quaternion."""
-    q = np.array([pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w])
-    p = np.array([pose.position.x, pose.position.y, pose.position.z])
-    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(p))) or np.linalg.norm(q) < 1e-9:
-        raise ValueError(f'invalid pose: position {p}, quaternion {q}')
-    t = np.eye(4)
-    t[:3, :3] = Rotation.from_quat(q / np.linalg.norm(q)).as_matrix()
-    t[:3, 3] = p
-    return t
 
 
 class EstimatorNode(Node):
@@ -208,7 +191,7 @@ class EstimatorNode(Node):
         if not np.all(np.isfinite(q)):
             self.get_logger().warning(f'/joint_states with non-finite positions {q}; ignored')
             return
-        self.buffer.add(_stamp(msg.header.stamp), q)
+        self.buffer.add(stamp_to_seconds(msg.header.stamp), q)
         if self.pending:
             self._process_pending()
 
@@ -229,7 +212,7 @@ class EstimatorNode(Node):
         latest = self.buffer.latest
         keep = []
         for msg in self.pending:
-            t = _stamp(msg.header.stamp)
+            t = stamp_to_seconds(msg.header.stamp)
             if latest is None or t > latest[0]:
                 keep.append(msg)                     # joint states for this image not here yet
                 continue

@@ -1,5 +1,8 @@
-"""Conversions between DH tables / covariances and std_msgs/Float64MultiArray (the contract's
-``/body_schema/estimate``, ``/body_schema/covariance`` and ``/body_schema/true`` encoding).
+"""The one encoding of the topic contract's arrays and poses (every node package uses this).
+
+DH tables and covariances <-> std_msgs/Float64MultiArray (``/body_schema/estimate``,
+``/body_schema/covariance``, ``/body_schema/true``); geometry_msgs/Pose <-> 4x4 transforms;
+builtin_interfaces/Time -> seconds.
 
 Estimate and true tables: 7 x 4, rows joints, columns ``a [m], d [m], alpha [rad], offset [rad]``,
 row-major, layout dims labelled ``joints`` and ``params``. Covariance: 28 x 28 in the same
@@ -9,9 +12,12 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from geometry_msgs.msg import Pose
+from scipy.spatial.transform import Rotation
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
-__all__ = ['table_to_msg', 'msg_to_table', 'covariance_to_msg', 'msg_to_covariance', 'MessageFormatError']
+__all__ = ['table_to_msg', 'msg_to_table', 'covariance_to_msg', 'msg_to_covariance', 'MessageFormatError',
+           'pose_msg_to_matrix', 'matrix_to_pose_msg', 'stamp_to_seconds']
 
 
 class MessageFormatError(ValueError):
@@ -56,3 +62,33 @@ def covariance_to_msg(P: ArrayLike) -> Float64MultiArray:  # noqa: N803
 def msg_to_covariance(msg: Float64MultiArray, n_params: int = 28) -> NDArray[np.float64]:
     """The (n, n) covariance in a Float64MultiArray."""
     return _msg_matrix(msg, (n_params, n_params), 'covariance')
+
+
+def pose_msg_to_matrix(pose: Pose) -> NDArray[np.float64]:
+    """geometry_msgs/Pose -> (4, 4); raises ValueError on NaN or a zero quaternion."""
+    p, q = pose.position, pose.orientation
+    xyz = np.array([p.x, p.y, p.z], dtype=float)
+    quat = np.array([q.x, q.y, q.z, q.w], dtype=float)
+    norm = np.linalg.norm(quat)
+    if not (np.all(np.isfinite(xyz)) and np.isfinite(norm) and norm > 1e-6):
+        raise ValueError(f'pose: position {xyz.tolist()} / quaternion {quat.tolist()} is not valid')
+    t = np.eye(4)
+    t[:3, :3] = Rotation.from_quat(quat / norm).as_matrix()
+    t[:3, 3] = xyz
+    return t
+
+
+def matrix_to_pose_msg(t: ArrayLike) -> Pose:
+    """(4, 4) -> geometry_msgs/Pose."""
+    t = np.asarray(t, dtype=float)
+    msg = Pose()
+    msg.position.x, msg.position.y, msg.position.z = (float(v) for v in t[:3, 3])
+    x, y, z, w = Rotation.from_matrix(t[:3, :3]).as_quat()
+    msg.orientation.x, msg.orientation.y, msg.orientation.z, msg.orientation.w = (
+        float(x), float(y), float(z), float(w))
+    return msg
+
+
+def stamp_to_seconds(stamp: object) -> float:
+    """builtin_interfaces/Time -> seconds."""
+    return stamp.sec + 1e-9 * stamp.nanosec

@@ -54,13 +54,13 @@ from rclpy.parameter import Parameter
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
                        qos_profile_sensor_data)
 from rosgraph_msgs.msg import Clock as ClockMsg
-from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, Image, JointState
-from std_msgs.msg import Float64MultiArray, MultiArrayDimension
+from std_msgs.msg import Float64MultiArray
 from trajectory_msgs.msg import JointTrajectory
 
 from body_schema.robot import ArmModel, load_robot
 from body_schema.sampling import perturb_dh
+from dh_estimator.messages import matrix_to_pose_msg, table_to_msg
 
 from .camera import degrade
 from .motion import CommandError, TrajectoryFollower, validate_command
@@ -236,19 +236,10 @@ class SimNode(Node):
     # Messages
 
     def _publish_latched(self) -> None:
-        msg = Float64MultiArray()
-        n = self.true_dh.shape[0]
-        msg.layout.dim = [MultiArrayDimension(label='joints', size=n, stride=4 * n),
-                          MultiArrayDimension(label='params', size=4, stride=4)]
-        msg.data = self.true_dh.ravel().tolist()
-        self.pub_true.publish(msg)
+        self.pub_true.publish(table_to_msg(self.true_dh))
         for eye, pose in self.cameras.items():
-            ps = PoseStamped()
+            ps = PoseStamped(pose=matrix_to_pose_msg(pose))
             ps.header.frame_id = self.robot.root_frame
-            ps.pose.position.x, ps.pose.position.y, ps.pose.position.z = (float(v) for v in pose[:3, 3])
-            qx, qy, qz, qw = Rotation.from_matrix(pose[:3, :3]).as_quat()
-            ps.pose.orientation.x, ps.pose.orientation.y = float(qx), float(qy)
-            ps.pose.orientation.z, ps.pose.orientation.w = float(qz), float(qw)
             self.pub_pose[eye].publish(ps)
 
     def _camera_info(self, eye: str, stamp: TimeMsg) -> CameraInfo:

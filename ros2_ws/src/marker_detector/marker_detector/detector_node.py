@@ -42,18 +42,18 @@ from typing import Any
 
 import numpy as np
 import rclpy
-from geometry_msgs.msg import Pose, PoseArray, PoseStamped, PoseWithCovarianceStamped
+from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped
 from numpy.typing import NDArray
 from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
                        qos_profile_sensor_data)
-from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, Image
 
 from body_schema import load_robot
 from body_schema.noise import ConstantNoise, PoseDependentNoise
+from dh_estimator.messages import matrix_to_pose_msg, pose_msg_to_matrix
 
 from .detection import FUSION_MODES, DetectorConfig, FrameResult, HandEstimate, HandPoseEstimator, fuse_estimates
 from .image_conversion import ImageConversionError, image_to_gray
@@ -64,30 +64,6 @@ OUTPUT_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
                         history=HistoryPolicy.KEEP_LAST)
 LATCHED_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                          durability=DurabilityPolicy.TRANSIENT_LOCAL, history=HistoryPolicy.KEEP_LAST)
-
-
-def pose_msg_to_matrix(pose: Any) -> NDArray[np.float64]:
-    """geometry_msgs/Pose -> (4, 4); raises ValueError on NaN or a zero quaternion."""
-    p, q = pose.position, pose.orientation
-    xyz = np.array([p.x, p.y, p.z], dtype=float)
-    quat = np.array([q.x, q.y, q.z, q.w], dtype=float)
-    norm = np.linalg.norm(quat)
-    if not (np.all(np.isfinite(xyz)) and np.isfinite(norm) and norm > 1e-6):
-        raise ValueError(f'pose: position {xyz.tolist()} / quaternion {quat.tolist()} is not valid')
-    t = np.eye(4)
-    t[:3, :3] = Rotation.from_quat(quat / norm).as_matrix()
-    t[:3, 3] = xyz
-    return t
-
-
-def matrix_to_pose_msg(t: NDArray[np.float64]) -> Pose:
-    """(4, 4) -> geometry_msgs/Pose."""
-    msg = Pose()
-    msg.position.x, msg.position.y, msg.position.z = (float(v) for v in t[:3, 3])
-    x, y, z, w = Rotation.from_matrix(t[:3, :3]).as_quat()
-    msg.orientation.x, msg.orientation.y, msg.orientation.z, msg.orientation.w = (
-        float(x), float(y), float(z), float(w))
-    return msg
 
 
 def _stamp_key(stamp: Any) -> tuple[int, int]:

@@ -16,7 +16,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial.transform import Rotation
 
 from . import kinematics
 from .sampling import uniform_configs
@@ -40,9 +39,8 @@ def orientation_errors_deg(r_true: ArrayLike, r_est: ArrayLike) -> NDArray[np.fl
     -------
     ndarray, shape () or (N,)
     """
-    r_true = np.asarray(r_true, dtype=float)
-    rel = np.swapaxes(r_true, -1, -2) @ np.asarray(r_est, dtype=float)
-    return np.degrees(Rotation.from_matrix(rel).magnitude())
+    # The angle of O^T O_hat equals that of O_hat O^T (a conjugate): the norm of its log.
+    return np.degrees(np.linalg.norm(kinematics.rotation_vector_error(r_est, r_true), axis=-1))
 
 
 @dataclass(frozen=True)

@@ -40,7 +40,6 @@ export_on_shutdown (bool).
 from __future__ import annotations
 
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
@@ -63,7 +62,7 @@ from body_schema import load_robot, sampling
 from body_schema.noise import ConstantNoise
 
 from .estimator import EstimatorSettings, OnlineEstimator, Outcome
-from .joint_buffer import JointStateBuffer, StampOutOfRange
+from .pairing import Attempt, ObservationPairer, PairingSettings
 from .messages import covariance_to_msg, pose_msg_to_matrix, stamp_to_seconds, table_to_msg
 
 _CN = ConstantNoise()      # fitted CN defaults live in body_schema.noise
@@ -128,11 +127,9 @@ class EstimatorNode(Node):
         if self.noise_mode not in ('message', 'constant'):
             raise ValueError(f"noise_model must be 'message' or 'constant', got {self.noise_mode!r}")
         self.cn = ConstantNoise(gp('cn_sigma_pos'), np.radians(gp('cn_sigma_rot_deg')))
-        self.static_window = gp('static_window')
-        self.static_tol = gp('static_tolerance')
-        self.require_command = gp('require_command')
-        self.target_tol = gp('target_tolerance')
-        self.target: np.ndarray | None = None
+        self.pairer = ObservationPairer(self.estimator, PairingSettings(
+            static_window=gp('static_window'), static_tol=gp('static_tolerance'),
+            require_command=gp('require_command'), target_tol=gp('target_tolerance')))
         self.checkpoint = Path(gp('checkpoint_path')) if gp('checkpoint_path') else None
         self.export_dir = Path(gp('export_dir')) if gp('export_dir') else None
         self.export_on_shutdown = gp('export_on_shutdown')
@@ -140,8 +137,6 @@ class EstimatorNode(Node):
             self.estimator.load_checkpoint(self.checkpoint)
             self.get_logger().info(f'resumed from checkpoint {self.checkpoint}: {self.estimator.counters}')
 
-        self.buffer = JointStateBuffer(self.model.n_joints)
-        self.pending: list[PoseWithCovarianceStamped] = []
         self.last_update_s = 0.0
         self._warned: set[str] = set()
         self.pub_estimate = self.create_publisher(Float64MultiArray, '/body_schema/estimate', LATCHED)
@@ -191,9 +186,7 @@ class EstimatorNode(Node):
         if not np.all(np.isfinite(q)):
             self.get_logger().warning(f'/joint_states with non-finite positions {q}; ignored')
             return
-        self.buffer.add(stamp_to_seconds(msg.header.stamp), q)
-        if self.pending:
-            self._process_pending()
+        self._handle(self.pairer.joint_state(stamp_to_seconds(msg.header.stamp), q))
 
     def on_command(self, msg: JointTrajectory) -> None:
         names = list(msg.joint_names)
@@ -202,58 +195,40 @@ class EstimatorNode(Node):
         last = msg.points[-1].positions
         if len(last) != len(names):
             return
-        self.target = np.array([last[names.index(n)] for n in self.model.joint_names], dtype=float)
+        self.pairer.command([last[names.index(n)] for n in self.model.joint_names])
 
     def on_hand_pose(self, msg: PoseWithCovarianceStamped) -> None:
-        self.pending.append(msg)
-        self._process_pending()
-
-    def _process_pending(self) -> None:
-        latest = self.buffer.latest
-        keep = []
-        for msg in self.pending:
-            t = stamp_to_seconds(msg.header.stamp)
-            if latest is None or t > latest[0]:
-                keep.append(msg)                     # joint states for this image not here yet
-                continue
-            self._attempt(msg, t)
-        self.pending = keep[-10:]
-
-    def _attempt(self, msg: PoseWithCovarianceStamped, t: float) -> None:
-        try:
-            q = self.buffer.at(t)
-        except StampOutOfRange as exc:
-            self.get_logger().warning(f'hand pose at {t:.3f} s dropped: {exc}')
-            return
-        if self.require_command and (self.target is None or np.max(np.abs(q - self.target)) > self.target_tol):
-            return                  # not at a commanded target: not a measurement attempt
-        if not self.buffer.is_static(t, self.static_window, self.static_tol):
-            self._status(t, q, 'moving', 'arm not still at the image stamp; observation not used')
-            return
         try:
             pose = pose_msg_to_matrix(msg.pose.pose)
-            if self.noise_mode == 'constant':
-                R = self.cn.covariance(0.0, 45.0)  # noqa: N806
-            else:
-                R = np.array(msg.pose.covariance, dtype=float).reshape(6, 6)  # noqa: N806
-            t0 = time.perf_counter()
-            outcome = self.estimator.offer(q, pose, R)
-            self.last_update_s = time.perf_counter() - t0
-        except (ValueError, ekf_mod.InvalidInputError, ekf_mod.FilterError) as exc:
-            self.get_logger().warning(f'hand pose at {t:.3f} s rejected as invalid input: {exc}')
-            self._status(t, q, 'invalid', str(exc))
+        except ValueError as exc:
+            self.get_logger().warning(f'/hand_pose with an invalid pose rejected: {exc}')
             return
-        if outcome is Outcome.DUPLICATE:
-            return                                   # the same static configuration: not new evidence
-        f = self.estimator.ekf
-        if outcome is Outcome.REJECTED:
-            self.get_logger().warning(f'outlier rejected at {t:.3f} s: Mahalanobis distance '
-                                      f'{f.mahalanobis:.2f} > gate {f.gate:.2f} '
-                                      f'({f.n_rejected} rejected so far)')
-        if self.checkpoint is not None:
-            self.estimator.save_checkpoint(self.checkpoint)
-        self.publish_estimate()
-        self._status(t, q, outcome.value, f'mahalanobis {f.mahalanobis:.3f}')
+        if self.noise_mode == 'constant':
+            R = self.cn.covariance(0.0, 45.0)  # noqa: N806
+        else:
+            R = np.array(msg.pose.covariance, dtype=float).reshape(6, 6)  # noqa: N806
+        self._handle(self.pairer.hand_pose(stamp_to_seconds(msg.header.stamp), pose, R))
+
+    def _handle(self, attempts: list[Attempt]) -> None:
+        for a in attempts:
+            if a.outcome == 'dropped':
+                self.get_logger().warning(f'hand pose at {a.stamp:.3f} s dropped: {a.message}')
+                continue
+            if a.outcome == Outcome.DUPLICATE.value:
+                continue                             # the same static configuration: not new evidence
+            self.last_update_s = a.update_seconds
+            if a.outcome == 'invalid':
+                self.get_logger().warning(f'hand pose at {a.stamp:.3f} s rejected as invalid input: {a.message}')
+            elif a.outcome in (Outcome.ACCEPTED.value, Outcome.REJECTED.value):
+                f = self.estimator.ekf
+                if a.outcome == Outcome.REJECTED.value:
+                    self.get_logger().warning(f'outlier rejected at {a.stamp:.3f} s: Mahalanobis distance '
+                                              f'{f.mahalanobis:.2f} > gate {f.gate:.2f} '
+                                              f'({f.n_rejected} rejected so far)')
+                if self.checkpoint is not None:
+                    self.estimator.save_checkpoint(self.checkpoint)
+                self.publish_estimate()
+            self._status(a.stamp, a.joints, a.outcome, a.message)
 
     def _status(self, t: float, q: np.ndarray, outcome: str, message: str) -> None:
         c = self.estimator.counters

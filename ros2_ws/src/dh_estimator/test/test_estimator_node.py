@@ -78,7 +78,7 @@ def test_update_then_nan_and_bad_names_leave_state(ros):
     np.testing.assert_array_equal(node.estimator.ekf.x, x)
     np.testing.assert_array_equal(node.estimator.ekf.P, P)
     assert node.estimator.counters['updates'] == 1
-    assert node.buffer.latest[0] < 2.05                      # bad joint states never entered
+    assert node.pairer.buffer.latest[0] < 2.05                      # bad joint states never entered
 
 
 def test_restart_from_checkpoint_is_identical(ros, tmp_path):
@@ -112,7 +112,7 @@ def test_only_commanded_targets_are_attempts(ros):
     target = start + 0.1
     cmd.publish(JointTrajectory(joint_names=list(ARM.joint_names),
                                 points=[JointTrajectoryPoint(positions=target.tolist())]))
-    ros.spin_until(lambda: node.target is not None, 5.0, 'the command')
+    ros.spin_until(lambda: node.pairer.target is not None, 5.0, 'the command')
     _feed_static(ros, js, target, 1.0, 2.0)
     hp.publish(_hand_pose(1.9, ARM.forward_kinematics(target)))
     ros.spin_until(lambda: node.estimator.counters['updates'] == 1, 5.0, 'the update at the target')

@@ -1,0 +1,65 @@
+"""ObservationPairer: which observations become EKF updates (pure, no rclpy)."""
+import numpy as np
+import pytest
+
+from body_schema import load_robot, sampling
+from body_schema.noise import ConstantNoise
+from dh_estimator.estimator import EstimatorSettings, OnlineEstimator
+from dh_estimator.pairing import ObservationPairer, PairingSettings
+
+R = ConstantNoise().covariance(0.0, 45.0)
+
+
+@pytest.fixture
+def setup():
+    model = load_robot('icub_right_arm')
+    est = OnlineEstimator(model, model.dh, sampling.initial_covariance(7, 0.046, np.radians(54)),
+                          EstimatorSettings(iterations=1))
+    return model, est, ObservationPairer(est, PairingSettings(static_window=0.1))
+
+
+def _rest(pairer, q, t0, t1, dt=0.01):
+    out = []
+    for t in np.arange(t0, t1 + 1e-9, dt):
+        out += pairer.joint_state(float(t), q)
+    return out
+
+
+def test_only_observations_at_the_commanded_target_are_attempts(setup):
+    model, est, pairer = setup
+    q = np.radians([-30, 30, 0, 45, 0, 0, 0])
+    pose = model.forward_kinematics(q)
+    _rest(pairer, q, 0.0, 1.0)
+    assert pairer.hand_pose(0.5, pose, R) == []              # no command yet: not an attempt
+    pairer.command(q + 0.1)
+    assert pairer.hand_pose(0.6, pose, R) == []              # elsewhere than the target
+    pairer.command(q)
+    [a] = pairer.hand_pose(0.7, pose, R)
+    assert a.outcome == 'accepted' and np.allclose(a.joints, q)
+    assert est.counters['updates'] == 1
+    [b] = pairer.hand_pose(0.8, pose, R)                     # same rest, second image
+    assert b.outcome == 'duplicate' and est.counters['updates'] == 1
+
+
+def test_an_image_waits_for_the_joint_states_of_its_stamp(setup):
+    model, est, pairer = setup
+    q = np.radians([-30, 30, 0, 45, 0, 0, 0])
+    pairer.command(q)
+    _rest(pairer, q, 0.0, 0.5)
+    assert pairer.hand_pose(0.55, model.forward_kinematics(q), R) == []   # stamp after the newest state
+    attempts = _rest(pairer, q, 0.51, 0.6)
+    assert [a.outcome for a in attempts] == ['accepted']
+
+
+def test_moving_arm_and_uncovered_stamps_are_reported_not_used(setup):
+    model, est, pairer = setup
+    q = np.radians([-30, 30, 0, 45, 0, 0, 0])
+    pairer.command(q)
+    for i, t in enumerate(np.arange(0.0, 0.5, 0.01)):        # approaching the target until 0.45 s
+        pairer.joint_state(float(t), q + max(0.0, 0.45 - t) * 0.01)
+    [a] = pairer.hand_pose(0.46, model.forward_kinematics(q), R)
+    assert a.outcome == 'moving'
+    pairer.buffer.add(20.0, q)                               # horizon drops the old samples
+    [b] = pairer.hand_pose(5.0, model.forward_kinematics(q), R)
+    assert b.outcome == 'dropped' and b.joints is None
+    assert est.counters['updates'] == 0

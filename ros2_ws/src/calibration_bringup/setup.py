@@ -22,6 +22,7 @@ setup(
     extras_require={'test': ['pytest']},
     entry_points={
         'console_scripts': [
+            'calibration_report = calibration_bringup.report:main',
         ],
     },
 )

@@ -23,6 +23,7 @@ setup(
     entry_points={
         'console_scripts': [
             'estimator_node = dh_estimator.estimator_node:main',
+            'evaluate = dh_estimator.evaluate:main',
         ],
     },
 )

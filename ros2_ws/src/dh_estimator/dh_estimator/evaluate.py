@@ -1,0 +1,361 @@
+"""Offline evaluation of a recorded calibration run: re-run the EKF on a bag, score every iteration.
+
+Reads an MCAP bag written by the recorder (``calibration_bringup.recorder_node``), feeds its
+``/joint_states``, ``/arm/command`` and ``/hand_pose`` messages, in recorded order, through the
+same :class:`~dh_estimator.pairing.ObservationPairer` and :class:`~dh_estimator.estimator.OnlineEstimator`
+the node uses, with the recorded settings or others (``--noise-model constant`` re-runs the paper's
+CN baseline on the very same images), and scores the estimate after every iteration (one
+``/calibration/progress`` record each) against ``/body_schema/true`` with the paper's metrics:
+average position and orientation error over 1000 configurations of the calibration box.
+
+The estimate the online node published (``/body_schema/estimate``) is scored next to it; with
+equal settings the two agree (the test suite checks it).
+
+Usage::
+
+    evaluate BAG.mcap --output DIR [--noise-model message|constant] [--iterations 5] ...
+
+writes ``DIR/metrics.csv``, ``DIR/error_vs_iteration.png`` and ``DIR/error_vs_movement.png``
+and prints a summary. No rclpy is needed: messages are decoded with ``mcap-ros2-support``.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+from collections.abc import Iterator, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from body_schema import load_robot, sampling
+from body_schema.metrics import PoseErrorEvaluator
+from body_schema.noise import ConstantNoise
+
+from .estimator import EstimatorSettings, OnlineEstimator
+from .messages import msg_to_covariance, msg_to_table, pose_msg_to_matrix, stamp_to_seconds
+from .pairing import ObservationPairer, PairingSettings
+
+__all__ = ['BagFormatError', 'EvaluationSettings', 'IterationRow', 'Evaluation', 'evaluate_bag',
+           'write_csv', 'plot_rows', 'main']
+
+#: Topics the evaluation reads (images are never decoded).
+TOPICS = ('/joint_states', '/arm/command', '/hand_pose', '/body_schema/estimate', '/body_schema/covariance',
+          '/body_schema/true', '/body_schema/update_status', '/calibration/progress')
+
+
+class BagFormatError(ValueError):
+    """The bag lacks what an evaluation needs (names the missing topic or message)."""
+
+
+@dataclass(frozen=True)
+class EvaluationSettings:
+    """How the offline filter runs. Defaults equal the estimator node's defaults.
+
+    ``initial`` is 'recorded' (the first estimate and covariance in the bag, i.e. the online
+    run's initial guess), 'perturbed' (seeded draw with ``initial_seed``, as the node does) or
+    'nominal'. ``noise_model`` is 'message' (the recorded /hand_pose covariances) or 'constant'.
+    """
+
+    robot: str = 'icub_right_arm'
+    initial: str = 'recorded'
+    initial_seed: int = 0
+    noise_model: str = 'message'
+    cn_sigma_pos: float = ConstantNoise().sigma_pos
+    cn_sigma_rot_deg: float = float(np.degrees(ConstantNoise().sigma_rot))
+    estimator: EstimatorSettings = field(default_factory=lambda: EstimatorSettings(iterations=5))
+    pairing: PairingSettings = field(default_factory=PairingSettings)
+
+    def __post_init__(self) -> None:
+        if self.initial not in ('recorded', 'perturbed', 'nominal'):
+            raise ValueError(f"initial must be 'recorded', 'perturbed' or 'nominal', got {self.initial!r}")
+        if self.noise_model not in ('message', 'constant'):
+            raise ValueError(f"noise_model must be 'message' or 'constant', got {self.noise_model!r}")
+
+
+@dataclass(frozen=True)
+class IterationRow:
+    """Metrics after one iteration (iteration 0: the initial guess)."""
+
+    iteration: int
+    outcome: str
+    detected: bool
+    movement_deg: float
+    discarded: int
+    position_mm: float              # offline re-run
+    orientation_deg: float
+    online_position_mm: float       # the estimate the node published
+    online_orientation_deg: float
+    offline_updates: int
+    selection_s: float
+    sim_time: float
+
+
+@dataclass
+class Evaluation:
+    """Result of :func:`evaluate_bag`."""
+
+    rows: list[IterationRow]
+    final_dh: NDArray[np.float64]           # offline, (L, 4)
+    online_final_dh: NDArray[np.float64]    # last recorded estimate, (L, 4)
+    true_dh: NDArray[np.float64]
+    counters: dict[str, int]
+    strategy: str
+
+    @property
+    def max_online_offline_difference(self) -> float:
+        """Largest absolute difference between the final offline and online tables."""
+        return float(np.max(np.abs(self.final_dh - self.online_final_dh)))
+
+
+def _messages(path: Path, topics: Sequence[str]) -> Iterator[tuple[str, int, Any]]:
+    from mcap_ros2.reader import read_ros2_messages   # imported here: plotting-only users skip it
+
+    for m in read_ros2_messages(str(path), topics=list(topics)):
+        yield m.channel.topic, m.log_time_ns, m.ros_msg
+
+
+def _joints(names: Sequence[str], positions: Sequence[float], order: Sequence[str]) -> NDArray[np.float64] | None:
+    names = list(names)
+    if any(n not in names for n in order) or len(positions) != len(names):
+        return None
+    return np.array([positions[names.index(n)] for n in order], dtype=float)
+
+
+def evaluate_bag(path: str | Path, settings: EvaluationSettings = EvaluationSettings()) -> Evaluation:
+    """Re-run the filter on a bag and score every iteration.
+
+    Parameters
+    ----------
+    path : str or Path
+        MCAP file written by the recorder.
+    settings : EvaluationSettings
+
+    Returns
+    -------
+    Evaluation
+
+    Raises
+    ------
+    FileNotFoundError
+        If ``path`` does not exist.
+    BagFormatError
+        If the bag has no ``/body_schema/true`` or (for ``initial='recorded'``) no estimate
+        recorded before the first update.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f'no bag at {path}')
+    model = load_robot(settings.robot)
+    names = model.joint_names
+    cn = ConstantNoise(settings.cn_sigma_pos, np.radians(settings.cn_sigma_rot_deg))
+    widths = (sampling.PAPER_WIDTH_LENGTH, np.radians(54.0))
+    x0: NDArray[np.float64] | None = None
+    P0: NDArray[np.float64] | None = None  # noqa: N806
+    if settings.initial == 'nominal':
+        x0 = model.dh.copy()
+    elif settings.initial == 'perturbed':
+        x0 = sampling.perturb_dh(model.dh, settings.initial_seed, *widths)
+    if x0 is not None:
+        P0 = sampling.initial_covariance(model.n_joints, *widths)  # noqa: N806
+
+    estimator: OnlineEstimator | None = None
+    pairer: ObservationPairer | None = None
+    evaluator: PoseErrorEvaluator | None = None
+    true_dh = online = None
+    started = False                 # an update status seen: later estimates are not the initial one
+    strategy = ''
+    progress: list[tuple[dict[str, Any], NDArray[np.float64], NDArray[np.float64] | None, int]] = []
+    backlog: list[tuple[str, Any]] = []     # inputs that arrive before the filter can start
+
+    def start() -> None:
+        nonlocal estimator, pairer
+        estimator = OnlineEstimator(model, x0, P0, settings.estimator)
+        pairer = ObservationPairer(estimator, settings.pairing)
+
+    def feed(topic: str, msg: Any) -> None:
+        if topic == '/joint_states':
+            q = _joints(msg.name, msg.position, names)
+            if q is not None and np.all(np.isfinite(q)):
+                pairer.joint_state(stamp_to_seconds(msg.header.stamp), q)
+        elif topic == '/arm/command':
+            if msg.points:
+                q = _joints(msg.joint_names, msg.points[-1].positions, names)
+                if q is not None:
+                    pairer.command(q)
+        else:   # /hand_pose
+            try:
+                pose = pose_msg_to_matrix(msg.pose.pose)
+            except ValueError:
+                return          # the node drops it too
+            R = cn.covariance(0.0, 45.0) if settings.noise_model == 'constant' \
+                else np.array(msg.pose.covariance, dtype=float).reshape(6, 6)  # noqa: N806
+            pairer.hand_pose(stamp_to_seconds(msg.header.stamp), pose, R)
+
+    for topic, _, msg in _messages(path, TOPICS):
+        if topic == '/body_schema/true':
+            true_dh = msg_to_table(msg, model.n_joints)
+            evaluator = PoseErrorEvaluator(model.base, true_dh, model.calibration_box)
+        elif topic == '/body_schema/estimate':
+            online = msg_to_table(msg, model.n_joints)
+            if x0 is None and not started:
+                x0 = online.copy()
+        elif topic == '/body_schema/covariance':
+            if P0 is None and not started:
+                P0 = msg_to_covariance(msg, model.n_params)  # noqa: N806
+        elif topic == '/body_schema/update_status':
+            started = True
+        elif topic == '/calibration/progress':
+            record = json.loads(msg.data)
+            strategy = record.get('strategy', strategy)
+            if estimator is None:
+                raise BagFormatError(f'{path}: iteration {record.get("iteration")} recorded before any '
+                                     'initial estimate and covariance; use initial=perturbed with its seed')
+            progress.append((record, estimator.dh.copy(), None if online is None else online.copy(),
+                             estimator.counters['updates']))
+        else:
+            if estimator is None:
+                if x0 is not None and P0 is not None:
+                    start()
+                    for item in backlog:
+                        feed(*item)
+                    backlog.clear()
+                else:
+                    backlog.append((topic, msg))
+                    continue
+            feed(topic, msg)
+    if evaluator is None:
+        raise BagFormatError(f'{path}: no /body_schema/true message; the evaluation needs the real table')
+    if estimator is None:
+        if x0 is None or P0 is None:
+            raise BagFormatError(f'{path}: no initial estimate and covariance recorded')
+        start()
+
+    def score(dh: NDArray[np.float64] | None) -> tuple[float, float]:
+        if dh is None:
+            return float('nan'), float('nan')
+        e = evaluator(dh)
+        return e.position_mm, e.orientation_deg
+
+    p0, o0 = score(x0)
+    rows = [IterationRow(0, 'initial', False, 0.0, 0, p0, o0, p0, o0, 0, 0.0, 0.0)]
+    for record, dh, online_dh, n_updates in progress:
+        pos, ori = score(dh)
+        opos, oori = score(online_dh)
+        rows.append(IterationRow(int(record['iteration']), str(record['outcome']), bool(record['detected']),
+                                 float(record['movement_deg']), int(record['discarded']), pos, ori, opos, oori,
+                                 n_updates, float(record.get('selection_s', 0.0)),
+                                 float(record.get('sim_time', 0.0))))
+    return Evaluation(rows, estimator.dh.copy(), x0 if online is None else online, true_dh,
+                      estimator.counters, strategy)
+
+
+def write_csv(rows: Sequence[IterationRow], path: str | Path) -> Path:
+    """Write the rows as CSV (one line per iteration, header = field names)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open('w', newline='') as f:
+        w = csv.DictWriter(f, fieldnames=list(IterationRow.__dataclass_fields__))
+        w.writeheader()
+        for r in rows:
+            w.writerow(asdict(r))
+    return path
+
+
+def plot_rows(rows: Sequence[IterationRow], directory: str | Path, title: str = '') -> list[Path]:
+    """Error vs iteration and error vs accumulated movement (PNG), offline and online.
+
+    Returns the paths written: ``error_vs_iteration.png``, ``error_vs_movement.png``.
+    """
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    it = np.array([r.iteration for r in rows])
+    mv = np.array([r.movement_deg for r in rows])
+    series = {'position error [mm]': ([r.position_mm for r in rows], [r.online_position_mm for r in rows]),
+              'orientation error [deg]': ([r.orientation_deg for r in rows], [r.online_orientation_deg for r in rows])}
+    failed = np.array([r.outcome in ('failed', 'unreachable', 'timeout') for r in rows])
+    out = []
+    for x, xlabel, name in ((it, 'iteration', 'error_vs_iteration.png'),
+                            (mv, 'accumulated joint movement [deg]', 'error_vs_movement.png')):
+        fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), constrained_layout=True)
+        for ax, (label, (offline, online)) in zip(axes, series.items()):
+            ax.semilogy(x, offline, '-o', ms=3, label='offline re-run')
+            ax.semilogy(x, online, '--', lw=1, label='online estimate')
+            if failed.any():
+                ax.plot(x[failed], np.asarray(offline)[failed], 'x', color='tab:red', label='discarded sample')
+            ax.set_xlabel(xlabel)
+            ax.set_ylabel(label)
+            ax.grid(True, which='both', alpha=0.3)
+        axes[0].legend()
+        if title:
+            fig.suptitle(title)
+        fig.savefig(directory / name, dpi=110)
+        plt.close(fig)
+        out.append(directory / name)
+    return out
+
+
+def summary_text(ev: Evaluation) -> str:
+    """A few lines: initial and final errors, movement, discarded samples, online/offline agreement."""
+    first, last = ev.rows[0], ev.rows[-1]
+    return (f'iterations {last.iteration} ({ev.strategy or "unknown strategy"}), updates {ev.counters["updates"]}, '
+            f'rejected {ev.counters["rejected"]}, discarded samples {last.discarded}\n'
+            f'position error    {first.position_mm:8.2f} mm  -> {last.position_mm:7.2f} mm '
+            f'(online {last.online_position_mm:.2f} mm)\n'
+            f'orientation error {first.orientation_deg:8.2f} deg -> {last.orientation_deg:7.2f} deg '
+            f'(online {last.online_orientation_deg:.2f} deg)\n'
+            f'accumulated movement {last.movement_deg:.0f} deg; max |offline - online| DH difference '
+            f'{ev.max_online_offline_difference:.2e}')
+
+
+def _parser() -> argparse.ArgumentParser:
+    d = EvaluationSettings()
+    ap = argparse.ArgumentParser(prog='evaluate', description=__doc__.split('\n\n')[0],
+                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    ap.add_argument('bag', type=Path, help='MCAP file written by the recorder')
+    ap.add_argument('--output', type=Path, help='directory for metrics.csv and the plots (default: next to the bag)')
+    ap.add_argument('--robot', default=d.robot, help='packaged robot name or YAML path')
+    ap.add_argument('--initial', default=d.initial, choices=['recorded', 'perturbed', 'nominal'])
+    ap.add_argument('--initial-seed', type=int, default=d.initial_seed)
+    ap.add_argument('--noise-model', default=d.noise_model, choices=['message', 'constant'])
+    ap.add_argument('--cn-sigma-pos', type=float, default=d.cn_sigma_pos, help='[m]')
+    ap.add_argument('--cn-sigma-rot-deg', type=float, default=d.cn_sigma_rot_deg, help='[deg]')
+    ap.add_argument('--iterations', type=int, default=d.estimator.iterations, help='linearisations per update')
+    ap.add_argument('--gate-probability', type=float, default=d.estimator.gate_probability)
+    ap.add_argument('--gate-warmup', type=int, default=d.estimator.gate_warmup)
+    ap.add_argument('--no-plots', action='store_true', help='write the CSV only')
+    return ap
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Console entry point ``evaluate``; returns the exit status."""
+    args = _parser().parse_args(argv)
+    try:
+        settings = EvaluationSettings(
+            robot=args.robot, initial=args.initial, initial_seed=args.initial_seed, noise_model=args.noise_model,
+            cn_sigma_pos=args.cn_sigma_pos, cn_sigma_rot_deg=args.cn_sigma_rot_deg,
+            estimator=EstimatorSettings(iterations=args.iterations, gate_probability=args.gate_probability,
+                                        gate_warmup=args.gate_warmup))
+        ev = evaluate_bag(args.bag, settings)
+    except (FileNotFoundError, ValueError) as exc:
+        print(f'evaluate: {exc}', file=sys.stderr)
+        return 2
+    out = args.output or args.bag.parent
+    paths = [write_csv(ev.rows, out / 'metrics.csv')]
+    if not args.no_plots:
+        paths += plot_rows(ev.rows, out, title=f'{args.bag.name}: {ev.strategy}, noise {args.noise_model}')
+    print(summary_text(ev))
+    print('wrote ' + ' '.join(str(p) for p in paths))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

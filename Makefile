@@ -7,7 +7,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.setup-stamp
 PKGS := $(wildcard ros2_ws/src/*/package.xml)
 PKG_DIRS := $(patsubst %/package.xml,%,$(PKGS))
-PKG_BUILD_FILES := $(PKGS) $(wildcard ros2_ws/src/*/setup.py ros2_ws/src/*/setup.cfg)
+PKG_BUILD_FILES := $(PKGS) $(wildcard ros2_ws/src/*/setup.py ros2_ws/src/*/setup.cfg ros2_ws/src/*/config/*)
 
 # ament_index_python finds packages through AMENT_PREFIX_PATH; the venv is our install prefix.
 export AMENT_PREFIX_PATH := $(VENV)$(if $(AMENT_PREFIX_PATH),:$(AMENT_PREFIX_PATH),)
@@ -32,10 +32,10 @@ bench: setup
 	$(PY) -m calibration_bringup.bench
 
 experiment: setup
-	@echo "The experiment runner arrives with its issue (paper reproduction); nothing to run yet." ; exit 2
+	$(PY) -m calibration_bringup.experiment $(EXPERIMENT_ARGS)
 
 experiment-quick: setup
-	@echo "The experiment runner arrives with its issue (paper reproduction); nothing to run yet." ; exit 2
+	$(PY) -m calibration_bringup.experiment --quick $(EXPERIMENT_ARGS)
 
 clean:
 	rm -rf $(VENV) build install log .pytest_cache

@@ -113,10 +113,13 @@ class Evaluation:
 
 
 def _messages(path: Path, topics: Sequence[str]) -> Iterator[tuple[str, int, Any]]:
-    from mcap_ros2.reader import read_ros2_messages   # imported here: plotting-only users skip it
+    from mcap.reader import make_reader             # imported here: plotting-only users skip it
+    from mcap_ros2.decoder import DecoderFactory
 
-    for m in read_ros2_messages(str(path), topics=list(topics)):
-        yield m.channel.topic, m.log_time_ns, m.ros_msg
+    with path.open('rb') as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        for _, channel, message, msg in reader.iter_decoded_messages(topics=list(topics), log_time_order=True):
+            yield channel.topic, message.log_time, msg
 
 
 def _joints(names: Sequence[str], positions: Sequence[float], order: Sequence[str]) -> NDArray[np.float64] | None:

@@ -1,0 +1,189 @@
+#!/usr/bin/env bash
+# One calibration run as a ROS 2 node graph: simulator, detector, estimator, selector and MCAP
+# recorder as separate processes, each with its parameter file from calibration_bringup/config.
+# Run with --help for the options. Uses `ros2 run` when a `ros2` command exists (a full ROS 2
+# install with the workspace sourced); otherwise the same installed executables (this repo's
+# .venv after `make setup`, or any prefix on AMENT_PREFIX_PATH).
+set -euo pipefail
+
+usage() {
+  cat <<'EOF'
+Usage: scripts/run_calibration.sh [options]
+
+Runs one online calibration of the simulated iCub right arm and records it to MCAP.
+
+  --strategy S      random | al | ucsal | ccsal                         (default: al)
+  --iterations N    measurement attempts (selector iterations)          (default: 50)
+  --seed S          seed of the real robot, the initial guess and the selector (default: 1)
+  --output DIR      where the bag, logs, model and report go            (default: results/run)
+  --noise M         pose_dependent | constant (the paper's CN baseline) (default: pose_dependent)
+  --rtf F           simulated seconds per wall second; 0 = as fast as possible (default: 1.0)
+  --image-size WxH  camera resolution, intrinsics scale with it         (default: 320x240)
+  --no-images       do not record the camera images (smaller bag)
+  --domain-id N     ROS_DOMAIN_ID of the run (default: random in 100-199, localhost only)
+  --timeout SEC     give up after this many wall seconds (default: 60 + 20 per iteration)
+  -h, --help        this text
+
+Writes DIR/calibration.mcap, DIR/report.md (+ PNG plots, metrics.csv), DIR/model/ (calibrated
+DH YAML and URDF), DIR/progress.jsonl and DIR/logs/<node>.log. Exit status 0 on a finished run;
+1 with the failing node's log tail if a node dies or the run times out.
+EOF
+}
+
+strategy=al; iterations=50; seed=1; output=results/run; noise=pose_dependent; rtf=1.0
+image_size=320x240; record_images=1; domain_id=""; timeout=""
+while [ $# -gt 0 ]; do
+  case "$1" in
+    --strategy) strategy=$2; shift 2 ;;
+    --iterations) iterations=$2; shift 2 ;;
+    --seed) seed=$2; shift 2 ;;
+    --output) output=$2; shift 2 ;;
+    --noise) noise=$2; shift 2 ;;
+    --rtf) rtf=$2; shift 2 ;;
+    --image-size) image_size=$2; shift 2 ;;
+    --no-images) record_images=0; shift ;;
+    --domain-id) domain_id=$2; shift 2 ;;
+    --timeout) timeout=$2; shift 2 ;;
+    -h|--help) usage; exit 0 ;;
+    *) echo "run_calibration: unknown option '$1' (see --help)" >&2; exit 2 ;;
+  esac
+done
+
+die() { echo "run_calibration: $*" >&2; exit 2; }
+case "$strategy" in random|al|ucsal|ccsal) ;; *) die "--strategy must be random, al, ucsal or ccsal, got '$strategy'" ;; esac
+case "$noise" in pose_dependent|constant) ;; *) die "--noise must be pose_dependent or constant, got '$noise'" ;; esac
+[[ "$iterations" =~ ^[1-9][0-9]*$ ]] || die "--iterations must be a positive integer, got '$iterations'"
+[[ "$seed" =~ ^[0-9]+$ ]] || die "--seed must be a non-negative integer, got '$seed'"
+[[ "$image_size" =~ ^([0-9]+)x([0-9]+)$ ]] || die "--image-size must look like 640x480, got '$image_size'"
+width=${BASH_REMATCH[1]}; height=${BASH_REMATCH[2]}
+[[ "$rtf" =~ ^[0-9]*\.?[0-9]+$ ]] || die "--rtf must be a non-negative number, got '$rtf'"
+timeout=${timeout:-$((60 + 20 * iterations))}
+
+# --- Where the executables and parameter files are ----------------------------------------
+repo=$(cd "$(dirname "$0")/.." && pwd)
+if ! command -v ros2 >/dev/null 2>&1 && [ -x "$repo/.venv/bin/python" ]; then
+  # This repository's venv is the install prefix (see `make setup`).
+  export PATH="$repo/.venv/bin:$PATH"
+  export AMENT_PREFIX_PATH="$repo/.venv${AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}"
+fi
+share_dir() {   # share/<pkg> of the first prefix on AMENT_PREFIX_PATH that has it
+  local prefix
+  IFS=: read -ra prefixes <<<"${AMENT_PREFIX_PATH:-}"
+  for prefix in "${prefixes[@]}"; do
+    if [ -f "$prefix/share/ament_index/resource_index/packages/$1" ]; then echo "$prefix/share/$1"; return 0; fi
+  done
+  return 1
+}
+command_of() {  # the command line that runs <pkg> <exe>
+  local pkg=$1 exe=$2 prefix
+  if command -v ros2 >/dev/null 2>&1; then echo "ros2 run $pkg $exe"; return 0; fi
+  IFS=: read -ra prefixes <<<"${AMENT_PREFIX_PATH:-}"
+  for prefix in "${prefixes[@]}"; do   # colcon install layout first: <prefix>/lib/<pkg>/<exe>
+    if [ -x "$prefix/lib/$pkg/$exe" ]; then echo "$prefix/lib/$pkg/$exe"; return 0; fi
+  done
+  if command -v "$exe" >/dev/null 2>&1; then command -v "$exe"; return 0; fi
+  return 1
+}
+config=$(share_dir calibration_bringup)/config || \
+  die "calibration_bringup is not installed (run 'make setup', or source your colcon workspace)"
+for pair in icub_sim_bridge:sim_node marker_detector:detector_node dh_estimator:estimator_node \
+            active_selector:selector_node calibration_bringup:recorder_node calibration_bringup:calibration_report; do
+  command_of "${pair%%:*}" "${pair##*:}" >/dev/null || die "executable ${pair##*:} of ${pair%%:*} not found"
+done
+
+# --- An isolated graph ----------------------------------------------------------------------
+export ROS_DOMAIN_ID=${domain_id:-$((100 + RANDOM % 100))}
+export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+export PYTHONUNBUFFERED=1 RCUTILS_COLORIZED_OUTPUT=0 RCUTILS_LOGGING_BUFFERED_STREAM=0
+if [ -z "${FASTRTPS_DEFAULT_PROFILES_FILE:-}" ] && [ -f "$config/fastdds_shm.xml" ]; then
+  # Shared-memory segments large enough for whole camera frames (README: Fast DDS profile).
+  export FASTRTPS_DEFAULT_PROFILES_FILE="$config/fastdds_shm.xml"
+  export FASTDDS_DEFAULT_PROFILES_FILE="$config/fastdds_shm.xml"
+fi
+
+mkdir -p "$output/logs"
+output=$(cd "$output" && pwd)
+bag="$output/calibration.mcap"
+rm -f "$bag" "$output/progress.jsonl"
+
+declare -A pid=()
+order=()
+start() {   # start NAME PKG EXE ARGS...: its own process group, so a stop reaches ros2 run's child too
+  local name=$1 pkg=$2 exe=$3; shift 3
+  # shellcheck disable=SC2046  # the command line is words on purpose (ros2 run pkg exe)
+  setsid $(command_of "$pkg" "$exe") "$@" >"$output/logs/$name.log" 2>&1 &
+  pid[$name]=$!
+  order+=("$name")
+}
+alive() { kill -0 "${pid[$1]}" 2>/dev/null; }
+stop() {    # stop NAME...: SIGINT (nodes finish files and exports), then SIGKILL after 15 s
+  local name t
+  for name in "$@"; do alive "$name" && kill -INT -- "-${pid[$name]}" 2>/dev/null || true; done
+  for name in "$@"; do
+    for ((t = 0; t < 150; t++)); do alive "$name" || break; sleep 0.1; done
+    if alive "$name"; then
+      echo "run_calibration: $name did not stop on SIGINT within 15 s; killed" >&2
+      kill -KILL -- "-${pid[$name]}" 2>/dev/null || true
+    fi
+    wait "${pid[$name]}" 2>/dev/null || true
+  done
+}
+cleanup() { local n; for n in "${order[@]}"; do alive "$n" && kill -KILL -- "-${pid[$n]}" 2>/dev/null; done; true; }
+trap cleanup EXIT
+trap 'echo "run_calibration: interrupted; stopping the graph" >&2; stop "${order[@]}"; exit 130' INT TERM
+fail() {    # fail NAME WHY: the node's log tail, stop everything, exit 1
+  echo "run_calibration: $1 $2; last lines of $output/logs/$1.log:" >&2
+  tail -n 25 "$output/logs/$1.log" | sed 's/^/  | /' >&2
+  stop "${order[@]}"
+  exit 1
+}
+
+recorder_args=(-p "output:=$bag")
+[ "$record_images" = 1 ] || recorder_args+=(-p "exclude_images:=true")
+
+echo "run_calibration: $strategy, $iterations iterations, seed $seed, noise $noise, ${width}x${height}," \
+     "rtf $rtf, ROS_DOMAIN_ID $ROS_DOMAIN_ID -> $output"
+wall0=$SECONDS
+# The recorder first, so every latched fact (true table, initial estimate, camera poses) is in the bag.
+start recorder calibration_bringup recorder_node --ros-args --params-file "$config/recorder.yaml" \
+  "${recorder_args[@]}"
+for ((t = 0; t < 200; t++)); do [ -s "$bag" ] && break; alive recorder || fail recorder "exited at start"; sleep 0.1; done
+[ -s "$bag" ] || fail recorder "did not open $bag within 20 s"
+start sim icub_sim_bridge sim_node --ros-args --params-file "$config/sim.yaml" \
+  -p "perturb_seed:=$seed" -p "real_time_factor:=$rtf" -p "image_width:=$width" -p "image_height:=$height"
+start detector marker_detector detector_node --ros-args --params-file "$config/detector.yaml"
+start estimator dh_estimator estimator_node --ros-args --params-file "$config/estimator.yaml" \
+  -p "initial_seed:=$seed" -p "noise_model:=$([ "$noise" = constant ] && echo constant || echo message)" \
+  -p "export_dir:=$output/model"
+start selector active_selector selector_node --ros-args --params-file "$config/selector.yaml" \
+  -p "strategy:=$strategy" -p "iterations:=$iterations" -p "seed:=$seed" -p "noise_model:=$noise" \
+  -p "progress_file:=$output/progress.jsonl"
+
+# --- Wait for the selector; a node that dies fails the run ----------------------------------
+shown=0
+while alive selector; do
+  for name in recorder sim detector estimator; do
+    alive "$name" || { wait "${pid[$name]}" && rc=0 || rc=$?; fail "$name" "exited early (status $rc)"; }
+  done
+  (( SECONDS - wall0 <= timeout )) || fail selector "did not finish $iterations iterations within $timeout s"
+  lines=$(grep -c ' iteration [0-9]*/' "$output/logs/selector.log" 2>/dev/null || true)
+  if (( lines > shown )); then   # echo the selector's one line per iteration
+    grep ' iteration [0-9]*/' "$output/logs/selector.log" | sed -n "$((shown + 1)),${lines}p" | sed 's/^.*\]: /  /'
+    shown=$lines
+  fi
+  sleep 0.2
+done
+wait "${pid[selector]}" && rc=0 || rc=$?
+grep ' iteration [0-9]*/' "$output/logs/selector.log" | sed -n "$((shown + 1)),\$p" | sed 's/^.*\]: /  /'
+(( rc == 0 )) || fail selector "failed (status $rc)"
+wall=$((SECONDS - wall0))
+
+# Estimator before recorder: its export and last messages land first; the recorder then closes the file.
+stop selector sim detector estimator
+stop recorder
+echo "run_calibration: finished in ${wall} s; writing the report"
+calibration_cmd=$(command_of calibration_bringup calibration_report)
+# shellcheck disable=SC2086
+$calibration_cmd --bag "$bag" --output "$output" --wall-seconds "$wall" \
+  --title "$strategy, $iterations iterations, seed $seed, noise $noise, ${width}x${height}" \
+  $([ "$noise" = constant ] && echo "--noise-model constant")

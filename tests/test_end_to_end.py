@@ -1,0 +1,116 @@
+"""End to end: scripts/run_calibration.sh runs the graph as processes and leaves a usable bag.
+
+One 5-iteration AL run (module-scoped: the slowest fixture of the suite, shared by the checks).
+The bag must open in two independent readers (mcap-ros2-support and rosbags with its Jazzy type
+store), hold every contract topic, one outcome per iteration and a final estimate better than
+the initial guess; the offline re-run of the recorded data must reproduce the online estimate.
+"""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from calibration_bringup.contract import CONTRACT
+
+REPO = Path(__file__).resolve().parents[1]
+SCRIPT = REPO / 'scripts' / 'run_calibration.sh'
+ITERATIONS = 5
+
+
+@pytest.fixture(scope='module')
+def run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, subprocess.CompletedProcess]:
+    out = tmp_path_factory.mktemp('run')
+    env = dict(os.environ, PATH=f'{Path(sys.executable).parent}:{os.environ["PATH"]}')
+    env.pop('ROS_DOMAIN_ID', None)
+    proc = subprocess.run([str(SCRIPT), '--strategy', 'al', '--iterations', str(ITERATIONS), '--seed', '3',
+                           '--rtf', '2.0', '--output', str(out), '--timeout', '240'],
+                          env=env, capture_output=True, text=True, timeout=300)
+    return out, proc
+
+
+def _ok(run: tuple[Path, subprocess.CompletedProcess]) -> Path:
+    out, proc = run
+    assert proc.returncode == 0, f'stdout:\n{proc.stdout}\nstderr:\n{proc.stderr}'
+    return out
+
+
+def test_help_and_bad_options_fail_fast() -> None:
+    h = subprocess.run([str(SCRIPT), '--help'], capture_output=True, text=True, timeout=10)
+    assert h.returncode == 0 and '--strategy' in h.stdout
+    bad = subprocess.run([str(SCRIPT), '--strategy', 'greedy'], capture_output=True, text=True, timeout=10)
+    assert bad.returncode == 2 and "'greedy'" in bad.stderr
+
+
+def test_run_writes_bag_report_model_and_logs(run) -> None:
+    out = _ok(run)
+    for name in ('calibration.mcap', 'report.md', 'metrics.csv', 'error_vs_iteration.png',
+                 'error_vs_movement.png', 'progress.jsonl', 'model/calibrated_dh.yaml', 'model/calibrated.urdf'):
+        assert (out / name).is_file(), name
+    for node in ('sim', 'detector', 'estimator', 'selector', 'recorder'):
+        assert (out / 'logs' / f'{node}.log').is_file(), node
+    assert 'position error' in run[1].stdout
+    assert len((out / 'progress.jsonl').read_text().splitlines()) == ITERATIONS
+
+
+def test_bag_opens_in_mcap_reader_with_every_contract_topic(run) -> None:
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    out = _ok(run)
+    seen: dict[str, int] = {}
+    progress = []
+    with (out / 'calibration.mcap').open('rb') as f:
+        for _, channel, _, msg in make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages():
+            seen[channel.topic] = seen.get(channel.topic, 0) + 1
+            if channel.topic == '/calibration/progress':
+                progress.append(json.loads(msg.data))
+    missing = [t.name for t in CONTRACT if t.name not in seen]
+    assert not missing, f'contract topics missing from the bag: {missing} (have {sorted(seen)})'
+    assert [p['iteration'] for p in progress] == list(range(1, ITERATIONS + 1))   # one outcome each
+    assert all(p['outcome'] in ('accepted', 'rejected', 'failed') for p in progress), progress
+
+
+def test_bag_opens_in_rosbags_with_the_jazzy_type_store(run) -> None:
+    from rosbags.highlevel import AnyReader    # a test dependency pinned in requirements.txt
+    from rosbags.typesys import Stores, get_typestore
+
+    out = _ok(run)
+    with AnyReader([out / 'calibration.mcap'], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
+        topics = {c.topic: c.msgtype for c in reader.connections}
+        assert topics['/joint_states'] == 'sensor_msgs/msg/JointState'
+        conns = [c for c in reader.connections if c.topic in ('/body_schema/true', '/joint_states')]
+        decoded = {}
+        for conn, _, raw in reader.messages(connections=conns):
+            decoded.setdefault(conn.topic, reader.deserialize(raw, conn.msgtype))
+    assert len(decoded['/body_schema/true'].data) == 28
+    assert len(decoded['/joint_states'].position) == 7
+
+
+def test_final_estimate_beats_the_initial_guess_and_replay_reproduces_it(run) -> None:
+    from dh_estimator.evaluate import evaluate_bag
+
+    out = _ok(run)
+    ev = evaluate_bag(out / 'calibration.mcap')
+    first, last = ev.rows[0], ev.rows[-1]
+    assert [r.iteration for r in ev.rows] == list(range(ITERATIONS + 1))
+    assert last.online_position_mm < first.position_mm, (first, last)
+    # The offline re-run on the recorded pairs makes the online node's decisions and updates.
+    assert ev.counters['updates'] == sum(r.outcome == 'accepted' for r in ev.rows)
+    np.testing.assert_allclose(ev.final_dh, ev.online_final_dh, atol=1e-9)
+    assert abs(last.position_mm - last.online_position_mm) < 1e-6
+
+
+def test_a_node_that_dies_fails_the_run_with_its_log_tail(tmp_path: Path) -> None:
+    env = dict(os.environ, PATH=f'{Path(sys.executable).parent}:{os.environ["PATH"]}')
+    # 8 px is below the simulator's image_width range: the sim exits at start.
+    proc = subprocess.run([str(SCRIPT), '--iterations', '2', '--image-size', '8x8', '--output', str(tmp_path),
+                           '--timeout', '120'], env=env, capture_output=True, text=True, timeout=180)
+    assert proc.returncode == 1, proc.stderr
+    assert 'sim exited early' in proc.stderr and '| ' in proc.stderr, proc.stderr
+    assert 'image_width' in proc.stderr           # the tail names the cause

@@ -1,8 +1,9 @@
 """``make bench``: run every package's benchmark and print their Markdown tables.
 
-Each package that has a benchmark exposes ``<package>.bench.main(argv) -> str`` returning a
-Markdown section; the tables are printed and written to ``results/bench/<package>.md``.
-Usage: ``python -m calibration_bringup.bench [package ...]``.
+Each benchmark is a module with ``main(argv) -> str`` returning a Markdown section
+(``<package>.bench`` for every package, plus the Fast DDS image transport benchmark); the tables
+are printed and written to ``results/bench/<name>.md``.
+Usage: ``python -m calibration_bringup.bench [name ...]`` with names from ``BENCHMARKS``.
 """
 from __future__ import annotations
 
@@ -10,24 +11,28 @@ import importlib
 import sys
 from pathlib import Path
 
-PACKAGES = ('body_schema', 'icub_sim_bridge', 'marker_detector', 'dh_estimator', 'active_selector')
+#: name -> (module, argv of its main)
+BENCHMARKS: dict[str, tuple[str, list[str]]] = {
+    **{pkg: (f'{pkg}.bench', []) for pkg in
+       ('body_schema', 'icub_sim_bridge', 'marker_detector', 'dh_estimator', 'active_selector')},
+    # 640x480 frames between processes, default Fast DDS vs the shipped shared-memory profile.
+    'transport': ('calibration_bringup.transport_bench', ['--profile', 'default', '--profile', 'shm']),
+}
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    wanted = argv or list(PACKAGES)
+    wanted = argv or list(BENCHMARKS)
+    unknown = [w for w in wanted if w not in BENCHMARKS]
+    if unknown:
+        print(f'unknown benchmark(s) {unknown}; choose from {sorted(BENCHMARKS)}', file=sys.stderr)
+        return 2
     out_dir = Path('results/bench')
     out_dir.mkdir(parents=True, exist_ok=True)
-    for pkg in wanted:
-        try:
-            mod = importlib.import_module(f'{pkg}.bench')
-        except ModuleNotFoundError as exc:
-            if exc.name not in (f'{pkg}.bench',):
-                raise
-            print(f'## {pkg}\n\n(no benchmark yet)\n')
-            continue
-        text = mod.main([])
-        (out_dir / f'{pkg}.md').write_text(text)
+    for name in wanted:
+        module, args = BENCHMARKS[name]
+        text = importlib.import_module(module).main(list(args))
+        (out_dir / f'{name}.md').write_text(text)
         print(text, flush=True)
     return 0
 

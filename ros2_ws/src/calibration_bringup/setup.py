@@ -23,6 +23,8 @@ setup(
     entry_points={
         'console_scripts': [
             'calibration_report = calibration_bringup.report:main',
+            'recorder_node = calibration_bringup.recorder_node:main',
+            'bag_player = calibration_bringup.player_node:main',
         ],
     },
 )

@@ -1,0 +1,232 @@
+"""MCAP recorder node: records topics to one rosbag2-compatible ``.mcap`` file.
+
+The file opens in ``ros2 bag play FILE.mcap``, the ``mcap`` and ``rosbags`` libraries and
+Foxglove (format: :mod:`calibration_bringup.mcap_writer`). Messages are taken raw (the CDR bytes
+as received) and written with their receive time as log time and the publisher's source
+timestamp as publish time.
+
+Topics are subscribed when they have publishers (checked every ``discovery_period``), with QoS
+adapted to what the publishers offer, as rosbag2 does: reliable if all of them are reliable,
+transient local if all of them are (so latched facts published before the recorder started are
+recorded), best effort otherwise. Types come from discovery; the publishers' QoS is stored in
+the file so that the player offers it again.
+
+On SIGINT or SIGTERM (rclpy's handlers shut the context down), on ``destroy_node`` and on
+``close()`` the file is finished (summary, indexes). After a SIGKILL it is readable up to its last
+complete chunk; ``flush_period`` bounds how much is lost.
+
+Subscriptions
+-------------
+``topics`` (default: every topic of the contract, :mod:`calibration_bringup.contract`)
+    Any type; raw.
+
+Parameters
+----------
+output : str
+    Path of the ``.mcap`` file (parent directories created). Default: ``recording_<time>.mcap``.
+overwrite : bool
+    Replace an existing ``output`` (default true, with a warning: a re-run replaces its bag;
+    false refuses, as rosbag2 does).
+topics : string array
+    Topics to record (default: the contract); others may be added, their type is discovered.
+exclude : string array
+    Topics left out.
+exclude_images : bool
+    Leave out the camera image topics (their bandwidth dominates a bag).
+compression : 'zstd' | 'lz4' | 'none'
+    Chunk compression.
+chunk_size : int
+    Uncompressed bytes per chunk.
+flush_period : float
+    Seconds after which a partial chunk is written anyway (0: only when full).
+discovery_period : float
+    Seconds between checks for new publishers.
+queue_depth : int
+    Subscription queue depth (keep last).
+"""
+from __future__ import annotations
+
+import functools
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import rclpy
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.executors import ExternalShutdownException
+from rclpy.logging import get_logger
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import (DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile,
+                       ReliabilityPolicy)
+
+from .contract import BY_NAME, CONTRACT, IMAGE_TOPICS
+from .mcap_writer import COMPRESSIONS, McapBagWriter, QosOffer
+from .node_util import float_range, int_range, message_class, string_list
+
+
+def qos_offer(profile: QoSProfile) -> QosOffer:
+    """An endpoint's rclpy QoS as the plain :class:`QosOffer` the writer stores."""
+    return QosOffer(
+        history=HistoryPolicy(profile.history).name.lower(),
+        depth=int(profile.depth),
+        reliability=ReliabilityPolicy(profile.reliability).name.lower(),
+        durability=DurabilityPolicy(profile.durability).name.lower(),
+        deadline_ns=profile.deadline.nanoseconds,
+        lifespan_ns=profile.lifespan.nanoseconds,
+        liveliness=LivelinessPolicy(profile.liveliness).name.lower(),
+        liveliness_lease_duration_ns=profile.liveliness_lease_duration.nanoseconds,
+        avoid_ros_namespace_conventions=bool(profile.avoid_ros_namespace_conventions))
+
+
+def request_qos(offers: list[QoSProfile], depth: int) -> QoSProfile:
+    """rosbag2's subscription QoS for a set of publishers (compatible with all of them)."""
+    reliable = bool(offers) and all(o.reliability == ReliabilityPolicy.RELIABLE for o in offers)
+    latched = bool(offers) and all(o.durability == DurabilityPolicy.TRANSIENT_LOCAL for o in offers)
+    return QoSProfile(depth=depth,
+                      reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
+
+
+class RecorderNode(Node):
+    """Records topics into one MCAP file (see the module docstring).
+
+    Attributes
+    ----------
+    output : Path
+        The file being written.
+    counts : dict of str to int
+        Messages written per topic (topics with a channel).
+    wanted : list of str
+        Topics this recorder records once they are published.
+    """
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__('mcap_recorder', **kwargs)
+        p = self.declare_parameter
+        p('output', '', ParameterDescriptor(
+            description="Path of the .mcap file; '' = recording_<YYYYmmdd-HHMMSS>.mcap here"))
+        p('overwrite', True, ParameterDescriptor(description='Replace an existing output file (false: refuse)'))
+        p('topics', [t.name for t in CONTRACT], ParameterDescriptor(
+            description='Topics to record (default: the topic contract); others: type discovered'))
+        p('exclude', Parameter.Type.STRING_ARRAY, ParameterDescriptor(description='Topics left out'))
+        p('exclude_images', False, ParameterDescriptor(description='Leave out ' + ', '.join(IMAGE_TOPICS)))
+        p('compression', 'zstd', ParameterDescriptor(description="Chunk compression: " + ' | '.join(COMPRESSIONS)))
+        p('chunk_size', 1 << 20, int_range('Uncompressed bytes per chunk (a SIGKILL loses at most one)',
+                                          4096, 1 << 28))
+        p('flush_period', 1.0, float_range('Write a partial chunk after this long [s] (0: only full chunks)',
+                                        0.0, 3600.0))
+        p('discovery_period', 0.5, float_range('Period of the check for new publishers [s]', 0.01, 60.0))
+        p('queue_depth', 100, int_range('Subscription queue depth (keep last)', 1, 100000))
+
+        gp = lambda name: self.get_parameter(name).value
+        output = gp('output') or time.strftime('recording_%Y%m%d-%H%M%S.mcap')
+        self.output = Path(output).expanduser().resolve()
+        if self.output.exists():
+            if not gp('overwrite'):
+                raise FileExistsError(f'output {str(self.output)!r} exists (overwrite is false)')
+            self.get_logger().warning(f'replacing {self.output}')
+        excluded = set(string_list(self, 'exclude')) | (set(IMAGE_TOPICS) if gp('exclude_images') else set())
+        self.wanted = [self.resolve_topic_name(t) for t in string_list(self, 'topics')]
+        self.wanted = [t for t in dict.fromkeys(self.wanted) if t not in excluded]
+        self._depth = gp('queue_depth')
+        self._writer = McapBagWriter(self.output, compression=gp('compression'), chunk_size=gp('chunk_size'))
+        self.counts = self._writer.counts
+        self._subs_by_topic: dict[str, Any] = {}
+        self._closed = False
+
+        self._discovery = self.create_timer(gp('discovery_period'), self._discover)
+        self._flusher = (self.create_timer(gp('flush_period'), self._writer.flush)
+                         if gp('flush_period') > 0 else None)
+        self.get_logger().info(f'recording {len(self.wanted)} topics to {self.output}')
+        self._discover()
+
+    @property
+    def closed(self) -> bool:
+        """True once the file is finished."""
+        return self._closed
+
+    def _discover(self) -> None:
+        types = dict(self.get_topic_names_and_types())
+        for topic in self.wanted:
+            if topic in self._subs_by_topic or topic not in types:
+                continue
+            endpoints = self.get_publishers_info_by_topic(topic)
+            if endpoints:   # a subscriber alone makes a topic visible; wait for a publisher
+                self._subscribe(topic, types[topic], endpoints)
+        if len(self._subs_by_topic) == len(self.wanted):
+            self._discovery.cancel()   # nothing left to wait for
+
+    def _subscribe(self, topic: str, types: list[str], endpoints: list[Any]) -> None:
+        expected = BY_NAME[topic].type if topic in BY_NAME else None
+        type_name = expected if expected in types else types[0]
+        if expected is not None and expected not in types:
+            self.get_logger().warning(f'{topic} is published as {types}, not {expected} as the '
+                                      f'contract says; recording {type_name}')
+        try:
+            cls = message_class(type_name)
+        except ImportError as exc:
+            self.get_logger().error(f'cannot record {topic}: {exc}')
+            self._subs_by_topic[topic] = None   # do not retry every period
+            return
+        offers = [e.qos_profile for e in endpoints if e.topic_type == type_name]
+        hashes = [str(e.topic_type_hash) for e in endpoints if e.topic_type == type_name]
+        type_hash = next((h for h in hashes if h.startswith('RIHS')), '')
+        self._writer.add_channel(topic, type_name, [qos_offer(o) for o in offers], type_hash)
+        qos = request_qos(offers, self._depth)
+        self._subs_by_topic[topic] = self.create_subscription(
+            cls, topic, functools.partial(self._on_message, topic), qos, raw=True)
+        self.get_logger().info(f'recording {topic} ({type_name}, '
+                               f'{qos.reliability.name.lower()}, {qos.durability.name.lower()})')
+
+    def _on_message(self, topic: str, data: bytes, info: dict[str, Any]) -> None:
+        if self._closed:
+            return
+        # rmw's reception time when it has one (Fast DDS does), else now; both are system time.
+        log_time = info.get('received_timestamp') or time.time_ns()
+        self._writer.write(topic, data, log_time, info.get('source_timestamp') or log_time,
+                           info.get('publication_sequence_number') or 0)
+
+    def close(self) -> None:
+        """Stop recording and finish the file (idempotent)."""
+        if self._closed:
+            return
+        self._closed = True
+        for t in (self._discovery, self._flusher):
+            if t is not None:
+                self.destroy_timer(t)
+        for sub in self._subs_by_topic.values():
+            if sub is not None:
+                self.destroy_subscription(sub)
+        self._writer.close()
+        total = sum(self.counts.values())
+        per_topic = ', '.join(f'{t} {n}' for t, n in self.counts.items()) or 'no topic was published'
+        # After SIGINT/SIGTERM the context is already shut down and /rosout cannot take the line.
+        logger = self.get_logger() if self.context.ok() else get_logger(self.get_name())
+        logger.info(f'closed {self.output}: {total} messages ({per_topic})')
+
+    def destroy_node(self) -> None:
+        """Finish the file, then destroy the node."""
+        self.close()
+        super().destroy_node()
+
+
+def main(args: list[str] | None = None) -> None:
+    # rclpy installs SIGINT and SIGTERM handlers that shut the context down: spin() then raises
+    # ExternalShutdownException (or KeyboardInterrupt) and destroy_node() finishes the file.
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = RecorderNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main(sys.argv)

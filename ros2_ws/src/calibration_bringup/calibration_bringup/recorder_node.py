@@ -5,8 +5,9 @@ Foxglove (format: :mod:`calibration_bringup.mcap_writer`). Messages are taken ra
 as received) and written with their receive time as log time and the publisher's source
 timestamp as publish time.
 
-Topics are subscribed when they have publishers (checked every ``discovery_period``), with QoS
-adapted to what the publishers offer, as rosbag2 does: reliable if all of them are reliable,
+Contract topics are subscribed at start with the contract's QoS, so nothing published before
+discovery notices a new publisher is lost; other topics are subscribed when they have publishers
+(checked every ``discovery_period``). QoS is adapted to what the publishers offer, as rosbag2 does: reliable if all of them are reliable,
 transient local if all of them are (so latched facts published before the recorder started are
 recorded), best effort otherwise. Types come from discovery; the publishers' QoS is stored in
 the file so that the player offers it again.
@@ -61,7 +62,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile,
                        ReliabilityPolicy)
 
-from .contract import BY_NAME, CONTRACT, IMAGE_TOPICS
+from .contract import BY_NAME, CONTRACT, IMAGE_TOPICS, ContractTopic
 from .mcap_writer import COMPRESSIONS, McapBagWriter, QosOffer
 from .node_util import float_range, int_range, message_class, string_list
 
@@ -134,7 +135,11 @@ class RecorderNode(Node):
         self._writer = McapBagWriter(self.output, compression=gp('compression'), chunk_size=gp('chunk_size'))
         self.counts = self._writer.counts
         self._subs_by_topic: dict[str, Any] = {}
+        self._early: dict[str, tuple[Any, QoSProfile]] = {}
         self._closed = False
+        for topic in self.wanted:
+            if topic in BY_NAME:
+                self._subscribe_early(BY_NAME[topic])
 
         self._discovery = self.create_timer(gp('discovery_period'), self._discover)
         self._flusher = (self.create_timer(gp('flush_period'), self._writer.flush)
@@ -147,13 +152,60 @@ class RecorderNode(Node):
         """True once the file is finished."""
         return self._closed
 
+    def _subscribe_early(self, topic: ContractTopic) -> None:
+        """Subscribe a contract topic before its publisher appears, with the contract's QoS.
+
+        A node that publishes right after it starts (the selector's first command, a latched
+        estimate updated before discovery) would otherwise lose its first messages to the
+        discovery period. :meth:`_discover` re-subscribes if a publisher offers less.
+        """
+        try:
+            cls = message_class(topic.type)
+        except ImportError:
+            return                              # discovery will report it
+        qos = QoSProfile(depth=self._depth,
+                         reliability=ReliabilityPolicy.BEST_EFFORT if topic.sensor else ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL if topic.latched else DurabilityPolicy.VOLATILE)
+        sub = self.create_subscription(cls, topic.name, functools.partial(self._on_message, topic.name), qos, raw=True)
+        self._early[topic.name] = (sub, qos)
+
+    def _add_channel(self, topic: str, type_name: str, endpoints: list[Any]) -> list[QoSProfile]:
+        offers = [e.qos_profile for e in endpoints if e.topic_type == type_name]
+        hashes = [str(e.topic_type_hash) for e in endpoints if e.topic_type == type_name]
+        if not self._writer.has_channel(topic):
+            self._writer.add_channel(topic, type_name, [qos_offer(o) for o in offers],
+                                     next((h for h in hashes if h.startswith('RIHS')), ''))
+        return offers
+
+    def _confirm_early(self, topic: str, types: list[str], endpoints: list[Any]) -> None:
+        """A publisher of an early-subscribed topic appeared: keep the subscription if it matches."""
+        sub, qos = self._early[topic]
+        offers = [e.qos_profile for e in endpoints if e.topic_type == BY_NAME[topic].type]
+        need = request_qos(offers, self._depth)
+        too_strict = (qos.reliability == ReliabilityPolicy.RELIABLE and need.reliability != qos.reliability) or \
+            (qos.durability == DurabilityPolicy.TRANSIENT_LOCAL and need.durability != qos.durability)
+        if not offers or too_strict:            # another type, or a publisher offering less
+            del self._early[topic]
+            self.destroy_subscription(sub)
+            self._subscribe(topic, types, endpoints)
+            return
+        del self._early[topic]
+        self._subs_by_topic[topic] = sub
+        self._add_channel(topic, BY_NAME[topic].type, endpoints)
+        self.get_logger().info(f'recording {topic} ({BY_NAME[topic].type}, '
+                               f'{qos.reliability.name.lower()}, {qos.durability.name.lower()})')
+
     def _discover(self) -> None:
         types = dict(self.get_topic_names_and_types())
         for topic in self.wanted:
             if topic in self._subs_by_topic or topic not in types:
                 continue
             endpoints = self.get_publishers_info_by_topic(topic)
-            if endpoints:   # a subscriber alone makes a topic visible; wait for a publisher
+            if not endpoints:       # a subscriber alone makes a topic visible; wait for a publisher
+                continue
+            if topic in self._early:
+                self._confirm_early(topic, types[topic], endpoints)
+            else:
                 self._subscribe(topic, types[topic], endpoints)
         if len(self._subs_by_topic) == len(self.wanted):
             self._discovery.cancel()   # nothing left to wait for
@@ -170,10 +222,7 @@ class RecorderNode(Node):
             self.get_logger().error(f'cannot record {topic}: {exc}')
             self._subs_by_topic[topic] = None   # do not retry every period
             return
-        offers = [e.qos_profile for e in endpoints if e.topic_type == type_name]
-        hashes = [str(e.topic_type_hash) for e in endpoints if e.topic_type == type_name]
-        type_hash = next((h for h in hashes if h.startswith('RIHS')), '')
-        self._writer.add_channel(topic, type_name, [qos_offer(o) for o in offers], type_hash)
+        offers = self._add_channel(topic, type_name, endpoints)
         qos = request_qos(offers, self._depth)
         self._subs_by_topic[topic] = self.create_subscription(
             cls, topic, functools.partial(self._on_message, topic), qos, raw=True)
@@ -183,6 +232,8 @@ class RecorderNode(Node):
     def _on_message(self, topic: str, data: bytes, info: dict[str, Any]) -> None:
         if self._closed:
             return
+        if not self._writer.has_channel(topic):     # early subscription, before discovery saw the publisher
+            self._add_channel(topic, BY_NAME[topic].type, self.get_publishers_info_by_topic(topic))
         # rmw's reception time when it has one (Fast DDS does), else now; both are system time.
         log_time = info.get('received_timestamp') or time.time_ns()
         self._writer.write(topic, data, log_time, info.get('source_timestamp') or log_time,
@@ -196,7 +247,7 @@ class RecorderNode(Node):
         for t in (self._discovery, self._flusher):
             if t is not None:
                 self.destroy_timer(t)
-        for sub in self._subs_by_topic.values():
+        for sub in [*self._subs_by_topic.values(), *(s for s, _ in self._early.values())]:
             if sub is not None:
                 self.destroy_subscription(sub)
         self._writer.close()

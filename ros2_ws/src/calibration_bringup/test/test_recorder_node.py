@@ -213,3 +213,27 @@ def test_sigkill_leaves_every_complete_chunk_readable(ros: Any, tmp_path: Path) 
     s = bag.summary(path)
     assert not s.complete and s.message_count == len(got)
     assert [m.data for _, _, m in bag.read_messages(path)] == got
+
+
+def test_contract_topics_are_recorded_before_discovery_notices_their_publisher(ros: Any, tmp_path: Path) -> None:
+    # The selector commands right after it starts; a recorder that waited for its discovery period
+    # lost that first command (and with it the first measurement of an offline re-run).
+    path = tmp_path / 'early.mcap'
+    rec = _recorder(ros, path, discovery_period=60.0)       # discovery never runs after start
+    probe = ros.node('probe')
+    cmd = probe.create_publisher(String, '/calibration/progress', 10)
+    best_effort_js = probe.create_publisher(JointState, '/joint_states', qos_profile_sensor_data)
+    ros.spin_until(lambda: cmd.get_subscription_count() == 1, 10.0, 'the early subscription matching')
+    cmd.publish(String(data='first'))
+    ros.spin_until(lambda: rec.counts.get('/calibration/progress') == 1, 10.0, 'the first message')
+    # A best-effort publisher cannot reach the early reliable subscription: discovery re-subscribes.
+    assert best_effort_js.get_subscription_count() == 0
+    rec._discover()
+    ros.spin_until(lambda: best_effort_js.get_subscription_count() == 1, 10.0, 'the re-subscription')
+    best_effort_js.publish(_joint_state(3))
+    ros.spin_until(lambda: rec.counts.get('/joint_states') == 1, 10.0, 'the best-effort joint state')
+    rec.close()
+    s = bag.summary(path)
+    assert s.topics['/calibration/progress'].count == 1
+    assert s.topics['/calibration/progress'].offered_qos[0].reliability == 'reliable'
+    assert s.topics['/joint_states'].offered_qos[0].reliability == 'best_effort'

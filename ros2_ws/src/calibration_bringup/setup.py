@@ -25,6 +25,7 @@ setup(
             'calibration_report = calibration_bringup.report:main',
             'recorder_node = calibration_bringup.recorder_node:main',
             'bag_player = calibration_bringup.player_node:main',
+            'experiment = calibration_bringup.experiment:main',
         ],
     },
 )

@@ -1,0 +1,309 @@
+"""Figures and summary table of the experiment, from its CSV (re-plot without re-running).
+
+Usage::
+
+    python -m calibration_bringup.experiment_figures [results/experiment]
+
+Reads ``<dir>/metrics.csv`` (written by :mod:`calibration_bringup.experiment`; if it is missing,
+the per-run CSVs under ``<dir>/runs`` are read instead) and writes:
+
+* ``figures/error_vs_iteration.png``: average position and orientation error vs iteration, mean
+  with standard-deviation bars over repetitions, for R, AL, UCSAL and CCSAL (pose-dependent noise);
+* ``figures/error_vs_movement.png``: the same errors vs the mean accumulated joint movement;
+* ``figures/discarded.png``: discarded samples (failed attempts) per run, every method;
+* ``figures/cn_vs_pose_dependent.png``: AL, UCSAL, CCSAL with the pose-dependent noise model vs
+  the constant one (CN);
+* ``summary.md``: final errors (mean +- std), total movement, movement relative to AL (with the
+  same noise model), discarded samples, and the per-iteration time breakdown.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = ['MethodRuns', 'load_metrics', 'summary_markdown', 'plot_all', 'render', 'main']
+
+#: Plot order and style: the paper's four methods, then the CN variants.
+ORDER = ('R', 'AL', 'UCSAL', 'CCSAL', 'AL-CN', 'UCSAL-CN', 'CCSAL-CN')
+POSE_DEPENDENT = ('R', 'AL', 'UCSAL', 'CCSAL')
+COLORS = {'R': 'tab:gray', 'AL': 'tab:blue', 'UCSAL': 'tab:orange', 'CCSAL': 'tab:green'}
+#: Numeric columns kept per method as (runs, iterations + 1) arrays.
+NUMERIC = ('position_mm', 'orientation_deg', 'movement_deg', 'discarded', 'selection_s', 'move_sim_s',
+           'sim_s', 'render_s', 'detect_s', 'estimator_s', 'selector_s', 'recorder_s', 'wall_s')
+#: Per-iteration time breakdown of the summary: column -> heading.
+TIMES = {'selection_s': 'selection [s]', 'move_sim_s': 'move, sim [s]', 'render_s': 'render [s]',
+         'sim_s': 'sim node [s]', 'detect_s': 'detection [s]', 'estimator_s': 'update [s]',
+         'recorder_s': 'recording [s]', 'wall_s': 'wall [s]'}
+
+
+def _base(method: str) -> str:
+    return method.removesuffix('-CN')
+
+
+def _color(method: str) -> str:
+    return COLORS.get(_base(method), 'black')
+
+
+@dataclass
+class MethodRuns:
+    """All runs of one method: each numeric column as an array (runs, iterations + 1), NaN-padded."""
+
+    method: str
+    repetitions: NDArray[np.int64]
+    columns: dict[str, NDArray[np.float64]]
+
+    @property
+    def n_runs(self) -> int:
+        return int(self.repetitions.size)
+
+    @property
+    def iterations(self) -> int:
+        return self.columns['position_mm'].shape[1] - 1
+
+    def final(self, column: str) -> NDArray[np.float64]:
+        """The last value of ``column`` of every run, shape (runs,)."""
+        a = self.columns[column]
+        last = np.array([np.flatnonzero(np.isfinite(r))[-1] if np.isfinite(r).any() else 0 for r in a])
+        return a[np.arange(a.shape[0]), last]
+
+    def per_iteration(self, column: str) -> NDArray[np.float64]:
+        """Values of ``column`` over every iteration >= 1 of every run (flattened, NaN dropped)."""
+        v = self.columns[column][:, 1:].ravel()
+        return v[np.isfinite(v)]
+
+
+def _float(text: str) -> float:
+    try:
+        return float(text)
+    except (TypeError, ValueError):
+        return float('nan')
+
+
+def load_metrics(path: Path | Sequence[Path]) -> dict[str, MethodRuns]:
+    """Per-method runs from ``metrics.csv`` or from a list of per-run CSVs.
+
+    Raises
+    ------
+    ValueError
+        If a CSV lacks a required column or holds no rows.
+    """
+    paths = [Path(path)] if isinstance(path, (str, Path)) else [Path(p) for p in path]
+    runs: dict[tuple[str, int], dict[int, dict[str, str]]] = {}
+    for p in paths:
+        with p.open(newline='') as f:
+            reader = csv.DictReader(f)
+            missing = {'method', 'repetition', 'iteration', *NUMERIC} - set(reader.fieldnames or ())
+            if missing:
+                raise ValueError(f'{p}: missing columns {sorted(missing)}')
+            for row in reader:
+                runs.setdefault((row['method'], int(row['repetition'])), {})[int(row['iteration'])] = row
+    if not runs:
+        raise ValueError(f'no rows in {", ".join(map(str, paths))}')
+    out: dict[str, MethodRuns] = {}
+    methods = sorted({m for m, _ in runs}, key=lambda m: (ORDER.index(m) if m in ORDER else len(ORDER), m))
+    for m in methods:
+        reps = sorted(r for mm, r in runs if mm == m)
+        n = max(max(runs[(m, r)]) for r in reps) + 1
+        cols = {c: np.full((len(reps), n), np.nan) for c in NUMERIC}
+        for i, r in enumerate(reps):
+            for it, row in runs[(m, r)].items():
+                for c in NUMERIC:
+                    cols[c][i, it] = _float(row[c])
+        out[m] = MethodRuns(m, np.array(reps), cols)
+    return out
+
+
+# ------------------------------------------------------------------------------------------
+# Table
+
+def _pm(values: NDArray[np.float64], digits: int) -> str:
+    v = values[np.isfinite(values)]
+    if v.size == 0:
+        return '-'
+    return f'{v.mean():.{digits}f} +- {v.std():.{digits}f}' if v.size > 1 else f'{v.mean():.{digits}f}'
+
+
+def summary_markdown(data: dict[str, MethodRuns]) -> str:
+    """The summary tables (Markdown): accuracy and movement, then time per iteration."""
+    n_runs = {m.n_runs for m in data.values()}
+    its = {m.iterations for m in data.values()}
+    lines = ['# Experiment summary', '',
+             f'{", ".join(data)}; {"/".join(map(str, sorted(n_runs)))} repetitions, '
+             f'{"/".join(map(str, sorted(its)))} iterations per run. Mean +- standard deviation over '
+             'repetitions of the values after the last iteration; errors averaged over 1000 '
+             'configurations of the calibration box.', '',
+             '| method | runs | position [mm] | orientation [deg] | initial position [mm] | movement [deg] '
+             '| movement / AL | discarded |',
+             '|---|---|---|---|---|---|---|---|']
+    for name, m in data.items():
+        ref_name = 'AL-CN' if name.endswith('-CN') else 'AL'
+        ratio = '-'
+        if ref_name in data and name != ref_name:
+            ref = np.nanmean(data[ref_name].final('movement_deg'))
+            ratio = f'{np.nanmean(m.final("movement_deg")) / ref:.2f}' if ref > 0 else '-'
+        lines.append(f'| {name} | {m.n_runs} | {_pm(m.final("position_mm"), 2)} | '
+                     f'{_pm(m.final("orientation_deg"), 2)} | {_pm(m.columns["position_mm"][:, 0], 1)} | '
+                     f'{_pm(m.final("movement_deg"), 0)} | {ratio} | {_pm(m.final("discarded"), 1)} |')
+    if 'AL' in data:
+        al = data['AL']
+        p, o = np.nanmean(al.final('position_mm')), np.nanmean(al.final('orientation_deg'))
+        lines += ['', f'AL after {al.iterations} iterations: {p:.2f} mm (target <= 5 mm: '
+                      f'{"met" if p <= 5 else "not met"}), {o:.2f} deg (target <= 2 deg: '
+                      f'{"met" if o <= 2 else "not met"}).']
+    lines += ['', '## Time per iteration', '',
+              'Means over every iteration of every run. Wall seconds except the simulated move; '
+              '"sim node" is the simulator\'s callbacks (physics, rendering, publishing), "detection" '
+              'the detector\'s, "update" the estimator\'s, "other" the wall time outside every node '
+              'callback (executor, middleware, the probe).', '',
+              '| method | ' + ' | '.join(TIMES.values()) + ' | other [s] |',
+              '|---|' + '---|' * (len(TIMES) + 1)]
+    for name, m in data.items():
+        means = {c: float(np.mean(m.per_iteration(c))) if m.per_iteration(c).size else float('nan') for c in TIMES}
+        callbacks = sum(float(np.mean(m.per_iteration(c))) for c in
+                        ('sim_s', 'detect_s', 'estimator_s', 'selector_s', 'recorder_s') if m.per_iteration(c).size)
+        other = means['wall_s'] - callbacks
+        lines.append(f'| {name} | ' + ' | '.join(f'{means[c]:.3f}' for c in TIMES) + f' | {other:.3f} |')
+    return '\n'.join(lines) + '\n'
+
+
+# ------------------------------------------------------------------------------------------
+# Figures
+
+def _mean_std(a: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    with warnings.catch_warnings():
+        warnings.simplefilter('ignore', RuntimeWarning)     # all-NaN columns of shorter runs
+        return np.nanmean(a, axis=0), np.nanstd(a, axis=0)
+
+
+def _errorbars(ax: object, x: NDArray[np.float64], a: NDArray[np.float64], label: str, color: str,
+               linestyle: str = '-', offset: float = 0.0) -> None:
+    mean, std = _mean_std(a)
+    ax.errorbar(x + offset, mean, yerr=std, label=label, color=color, linestyle=linestyle, marker='.',
+                markersize=3, capsize=2, elinewidth=0.8, linewidth=1.2)
+
+
+_ERRORS = (('position_mm', 'average position error [mm]'), ('orientation_deg', 'average orientation error [deg]'))
+
+
+def plot_all(data: dict[str, MethodRuns], out_dir: Path) -> list[Path]:
+    """Write the figures (PNG) into ``out_dir``; returns their paths."""
+    import matplotlib
+
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written: list[Path] = []
+
+    def save(fig: object, name: str) -> None:
+        path = out_dir / name
+        fig.tight_layout()
+        fig.savefig(path, dpi=120)
+        plt.close(fig)
+        written.append(path)
+
+    main = [m for m in POSE_DEPENDENT if m in data]
+    if main:
+        fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+        for k, m in enumerate(main):
+            x = np.arange(data[m].iterations + 1, dtype=float)
+            for ax, (col, label) in zip(axes, _ERRORS):
+                _errorbars(ax, x, data[m].columns[col], m, _color(m), offset=0.12 * (k - len(main) / 2))
+        for ax, (_, label) in zip(axes, _ERRORS):
+            ax.set(xlabel='iteration', ylabel=label, yscale='log')
+            ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+            ax.grid(True, which='both', alpha=0.3)
+        axes[0].legend()
+        save(fig, 'error_vs_iteration.png')
+
+        fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+        for m in main:
+            mov, _ = _mean_std(data[m].columns['movement_deg'])
+            for ax, (col, label) in zip(axes, _ERRORS):
+                mean, std = _mean_std(data[m].columns[col])
+                ax.errorbar(mov, mean, yerr=std, label=m, color=_color(m), marker='.', markersize=3,
+                            capsize=2, elinewidth=0.8, linewidth=1.2)
+        for ax, (_, label) in zip(axes, _ERRORS):
+            ax.set(xlabel='accumulated joint movement [deg]', ylabel=label, yscale='log')
+            ax.grid(True, which='both', alpha=0.3)
+        axes[0].legend()
+        save(fig, 'error_vs_movement.png')
+
+    names = list(data)
+    fig, ax = plt.subplots(figsize=(max(5.0, 1.1 * len(names)), 3.8))
+    finals = [data[m].final('discarded') for m in names]
+    bars = ax.bar(names, [np.nanmean(v) for v in finals], yerr=[np.nanstd(v) for v in finals], capsize=4,
+                  color=[_color(m) for m in names], alpha=0.85)
+    for bar, m in zip(bars, names):
+        if m.endswith('-CN'):
+            bar.set_hatch('//')
+    for i, v in enumerate(finals):
+        ax.scatter(np.full(v.size, i) + np.linspace(-0.15, 0.15, v.size), v, s=6, color='black', zorder=3)
+    ax.set(ylabel='discarded samples per run', title='failed measurement attempts')
+    ax.grid(True, axis='y', alpha=0.3)
+    save(fig, 'discarded.png')
+
+    pairs = [b for b in ('AL', 'UCSAL', 'CCSAL') if b in data and f'{b}-CN' in data]
+    if pairs:
+        fig, axes = plt.subplots(2, len(pairs), figsize=(4.2 * len(pairs), 6.5), squeeze=False)
+        for j, b in enumerate(pairs):
+            for i, (col, label) in enumerate(_ERRORS):
+                ax = axes[i, j]
+                for m, style, off in ((b, '-', -0.1), (f'{b}-CN', '--', 0.1)):
+                    x = np.arange(data[m].iterations + 1, dtype=float)
+                    _errorbars(ax, x, data[m].columns[col], m, _color(m), style, off)
+                ax.set(xlabel='iteration', ylabel=label, yscale='log')
+                ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+                ax.grid(True, which='both', alpha=0.3)
+                ax.legend()
+        save(fig, 'cn_vs_pose_dependent.png')
+    return written
+
+
+def render(root: Path, metrics: Path | None = None) -> list[Path]:
+    """Figures into ``<root>/figures`` and ``<root>/summary.md`` from the experiment's CSVs.
+
+    Raises
+    ------
+    FileNotFoundError
+        If there is neither ``metrics.csv`` nor any per-run CSV.
+    """
+    root = Path(root)
+    source: Path | list[Path] = metrics or root / 'metrics.csv'
+    if not Path(source).exists():
+        source = sorted(root.glob('runs/*/rep*.csv'))
+        if not source:
+            raise FileNotFoundError(f'no {root / "metrics.csv"} and no per-run CSVs under {root / "runs"}')
+    data = load_metrics(source)
+    summary = root / 'summary.md'
+    summary.write_text(summary_markdown(data))
+    return plot_all(data, root / 'figures') + [summary]
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog='experiment_figures', description=__doc__.split('\n\n')[0])
+    p.add_argument('root', nargs='?', type=Path, default=Path('results/experiment'),
+                   help='experiment directory [results/experiment]')
+    p.add_argument('--metrics', type=Path, default=None, help='CSV to read [<root>/metrics.csv]')
+    a = p.parse_args(argv)
+    try:
+        paths = render(a.root, a.metrics)
+    except (FileNotFoundError, ValueError) as exc:
+        print(f'experiment_figures: {exc}', file=sys.stderr)
+        return 2
+    print((a.root / 'summary.md').read_text())
+    print('\n'.join(str(x) for x in paths), file=sys.stderr)
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

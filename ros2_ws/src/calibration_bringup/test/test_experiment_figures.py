@@ -1,0 +1,107 @@
+"""Figures and summary table from synthetic experiment CSVs with known statistics."""
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from calibration_bringup import experiment as ex
+from calibration_bringup import experiment_figures as figs
+
+ITERATIONS = 5
+REPS = 3
+#: Final position error of repetition r: base + r (so mean base + 1, population std sqrt(2/3)).
+BASE_ERROR = {'R': 20.0, 'AL': 4.0, 'UCSAL': 8.0, 'CCSAL': 6.0, 'AL-CN': 5.0, 'UCSAL-CN': 9.0, 'CCSAL-CN': 7.0}
+#: Movement per iteration [deg].
+STEP = {'R': 300.0, 'AL': 200.0, 'UCSAL': 80.0, 'CCSAL': 100.0, 'AL-CN': 100.0, 'UCSAL-CN': 50.0,
+        'CCSAL-CN': 25.0}
+
+
+def _rows(method: str, rep: int) -> list[dict]:
+    rows = []
+    for it in range(ITERATIONS + 1):
+        final = BASE_ERROR[method] + rep
+        rows.append({'method': method, 'repetition': rep, 'seed': rep, 'iteration': it,
+                     'outcome': 'initial' if it == 0 else 'accepted', 'detected': it > 0,
+                     'position_mm': 100.0 if it == 0 else final + (ITERATIONS - it),
+                     'orientation_deg': 30.0 if it == 0 else final / 10,
+                     'movement_deg': STEP[method] * it, 'discarded': min(it, rep),
+                     'selection_s': 0.0 if it == 0 else 0.1, 'move_sim_s': 1.0 * (it > 0),
+                     'sim_s': 0.05 * (it > 0), 'render_s': 0.04 * (it > 0), 'detect_s': 0.01 * (it > 0),
+                     'estimator_s': 0.002 * (it > 0), 'selector_s': 0.12 * (it > 0), 'recorder_s': 0.0,
+                     'wall_s': 0.3 * (it > 0)})
+    return rows
+
+
+@pytest.fixture
+def experiment_dir(tmp_path: Path) -> Path:
+    runs = ex.plan_runs(ex.ExperimentConfig(repetitions=REPS, iterations=ITERATIONS))
+    for spec in runs:
+        ex.write_rows(spec.path(tmp_path, '.csv'), _rows(spec.method, spec.repetition))
+    ex.combine_runs(tmp_path, runs, tmp_path / 'metrics.csv')
+    return tmp_path
+
+
+def _table_row(summary: str, method: str) -> list[str]:
+    line = next(line for line in summary.splitlines() if line.startswith(f'| {method} | {REPS} |'))
+    return [c.strip() for c in line.strip('|').split('|')]
+
+
+def test_summary_reports_final_statistics(experiment_dir: Path) -> None:
+    outputs = figs.render(experiment_dir)
+    summary = (experiment_dir / 'summary.md').read_text()
+    std = np.std([0.0, 1.0, 2.0])
+    for method, base in BASE_ERROR.items():
+        cells = _table_row(summary, method)
+        assert cells[2] == f'{base + 1:.2f} +- {std:.2f}', cells          # final position
+        assert cells[3] == f'{(base + 1) / 10:.2f} +- {std / 10:.2f}'     # final orientation
+        assert cells[4] == '100.0 +- 0.0'                                 # initial position
+        assert cells[5] == f'{STEP[method] * ITERATIONS:.0f} +- 0'        # total movement
+        assert cells[7] == f'{1.0:.1f} +- {std:.1f}'                      # discarded: min(5, rep)
+    # Movement relative to AL with the same noise model.
+    assert _table_row(summary, 'UCSAL')[6] == '0.40' and _table_row(summary, 'CCSAL')[6] == '0.50'
+    assert _table_row(summary, 'UCSAL-CN')[6] == '0.50' and _table_row(summary, 'CCSAL-CN')[6] == '0.25'
+    assert _table_row(summary, 'AL')[6] == '-'
+    assert 'AL after 5 iterations: 5.00 mm (target <= 5 mm: met), 0.50 deg' in summary
+    timing = next(line for line in summary.splitlines() if line.startswith('| AL | 0.100'))
+    assert re.search(r'\| 0\.300 \| 0\.118 \|$', timing), timing    # wall, other = 0.3 - 0.182
+
+    names = {p.name for p in outputs}
+    assert names == {'error_vs_iteration.png', 'error_vs_movement.png', 'discarded.png',
+                     'cn_vs_pose_dependent.png', 'summary.md'}
+    for p in outputs:
+        if p.suffix == '.png':
+            assert p.read_bytes()[:8] == b'\x89PNG\r\n\x1a\n' and p.stat().st_size > 5000
+
+
+def test_replot_from_run_files_when_the_combined_csv_is_missing(experiment_dir: Path) -> None:
+    (experiment_dir / 'metrics.csv').unlink()
+    assert figs.main([str(experiment_dir)]) == 0
+    assert '| CCSAL-CN | 3 |' in (experiment_dir / 'summary.md').read_text()
+
+
+def test_subset_of_methods_draws_what_it_can(tmp_path: Path) -> None:
+    ex.write_rows(tmp_path / 'metrics.csv', _rows('AL', 0) + _rows('AL', 1))
+    outputs = figs.render(tmp_path)
+    assert {p.name for p in outputs} == {'error_vs_iteration.png', 'error_vs_movement.png',
+                                         'discarded.png', 'summary.md'}
+
+
+def test_shorter_runs_are_padded_not_misaligned(tmp_path: Path) -> None:
+    ex.write_rows(tmp_path / 'metrics.csv', _rows('AL', 0) + _rows('AL', 1)[:3])
+    data = figs.load_metrics(tmp_path / 'metrics.csv')
+    assert data['AL'].columns['position_mm'].shape == (2, ITERATIONS + 1)
+    assert np.isnan(data['AL'].columns['position_mm'][1, 3:]).all()
+    assert data['AL'].final('position_mm').tolist() == [4.0, 5.0 + ITERATIONS - 2]
+
+
+def test_bad_inputs_are_named(tmp_path: Path) -> None:
+    bad = tmp_path / 'metrics.csv'
+    bad.write_text('method,repetition,iteration\nAL,0,0\n')
+    with pytest.raises(ValueError, match='position_mm'):
+        figs.load_metrics(bad)
+    with pytest.raises(FileNotFoundError, match='metrics.csv'):
+        figs.render(tmp_path / 'empty')
+    assert figs.main([str(tmp_path / 'empty')]) == 2

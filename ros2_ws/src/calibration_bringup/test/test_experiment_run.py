@@ -1,0 +1,81 @@
+"""Experiment runner end to end: two methods x one repetition x three iterations on the real graph,
+in two spawned workers; then a restart skips the finished runs and redoes a missing one."""
+from __future__ import annotations
+
+import io
+import os
+from pathlib import Path
+
+import pytest
+
+from calibration_bringup import experiment as ex
+
+ITERATIONS = 3
+# Domains 200..213: clear of the in-process fixture (1..100), the transport tests and benchmark
+# (101..199) and the experiment's own default (215..232).
+DOMAIN_BASE = 200 + 2 * (os.getpid() % 7)
+
+
+@pytest.mark.slow
+def test_two_methods_run_resume_and_report(tmp_path: Path) -> None:
+    config = ex.ExperimentConfig(repetitions=1, iterations=ITERATIONS, methods=('AL-CN', 'R'), jobs=2,
+                                 output=tmp_path, seed_base=3, domain_base=DOMAIN_BASE)
+    log = io.StringIO()
+    assert ex.run_experiment(config, stream=log) == 0, log.getvalue()
+
+    runs = {m: ex.read_rows(tmp_path / 'runs' / m / 'rep00.csv') for m in config.methods}
+    for method, rows in runs.items():
+        assert [int(r['iteration']) for r in rows] == list(range(ITERATIONS + 1)), method
+        assert {r['seed'] for r in rows} == {'3'} and {r['method'] for r in rows} == {method}
+        assert rows[0]['outcome'] == 'initial'
+        assert {r['outcome'] for r in rows[1:]} <= {'accepted', 'rejected', 'failed'}, rows
+        movement = [float(r['movement_deg']) for r in rows]
+        assert movement == sorted(movement) and movement[-1] > 0
+        assert all(float(r['wall_s']) > 0 for r in rows[1:])
+        discarded = [int(r['discarded']) for r in rows]
+        assert discarded[-1] == sum(r['detected'] == 'False' for r in rows[1:])
+    # Fair comparison: the same true robot and initial guess, hence the same initial error.
+    assert runs['AL-CN'][0]['position_mm'] == runs['R'][0]['position_mm']
+    assert float(runs['R'][0]['position_mm']) > 10.0
+    accepted = [r for r in runs['R'] if r['outcome'] == 'accepted']
+    if accepted:     # an accepted update moves the estimate
+        assert accepted[0]['position_mm'] != runs['R'][0]['position_mm']
+
+    combined = ex.read_rows(tmp_path / 'metrics.csv')
+    assert len(combined) == 2 * (ITERATIONS + 1)
+    assert (tmp_path / 'summary.md').read_text().count('| AL-CN |') == 2   # accuracy and time tables
+    assert (tmp_path / 'figures' / 'discarded.png').stat().st_size > 1000
+    assert 'AL-CN rep 0 (seed 3): done' in log.getvalue()
+
+    if ex.recorder_available():
+        from mcap.reader import make_reader
+
+        with (tmp_path / 'runs' / 'R' / 'rep00.mcap').open('rb') as f:
+            summary = make_reader(f).get_summary()
+        counts = {c.topic: summary.statistics.channel_message_counts.get(i, 0)
+                  for i, c in summary.channels.items()}
+        assert counts['/calibration/progress'] == ITERATIONS
+        assert counts['/joint_states'] > 0
+        assert not any(t.endswith('image_raw') for t in counts)
+
+    # Restart: nothing to do; the finished CSVs are left alone.
+    stamps = {m: (tmp_path / 'runs' / m / 'rep00.csv').stat().st_mtime_ns for m in config.methods}
+    log = io.StringIO()
+    assert ex.run_experiment(config, stream=log) == 0
+    assert '2 already finished, 0 to run' in log.getvalue()
+    assert stamps == {m: (tmp_path / 'runs' / m / 'rep00.csv').stat().st_mtime_ns for m in config.methods}
+
+    # A run whose CSV is missing (killed before its end) is redone, and only that one.
+    (tmp_path / 'runs' / 'R' / 'rep00.csv').unlink()
+    log = io.StringIO()
+    assert ex.run_experiment(replace_jobs(config, 1), stream=log) == 0
+    assert '1 already finished, 1 to run' in log.getvalue()
+    assert (tmp_path / 'runs' / 'AL-CN' / 'rep00.csv').stat().st_mtime_ns == stamps['AL-CN']
+    rerun = ex.read_rows(tmp_path / 'runs' / 'R' / 'rep00.csv')
+    assert [r['position_mm'] for r in rerun][:1] == [runs['R'][0]['position_mm']]
+
+
+def replace_jobs(config: ex.ExperimentConfig, jobs: int) -> ex.ExperimentConfig:
+    from dataclasses import replace
+
+    return replace(config, jobs=jobs)

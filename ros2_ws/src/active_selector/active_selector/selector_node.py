@@ -16,7 +16,8 @@ Subscriptions
 
 Publications
 ------------
-/arm/command : trajectory_msgs/JointTrajectory (reliable)
+/arm/command : trajectory_msgs/JointTrajectory (reliable, transient local depth 1: the current target
+    is a fact; a recorder that matches late still gets the first command)
 /calibration/progress : std_msgs/String (reliable), one JSON object per iteration
 
 Parameters
@@ -160,7 +161,7 @@ class SelectorNode(Node):
         self._last_wait_report = 0.0
         self._warned: set[str] = set()
 
-        self.pub_cmd = self.create_publisher(JointTrajectory, '/arm/command', 10)
+        self.pub_cmd = self.create_publisher(JointTrajectory, '/arm/command', LATCHED)
         self.pub_progress = self.create_publisher(String, '/calibration/progress', 10)
         self.create_subscription(JointState, '/joint_states', self.on_joint_state, qos_profile_sensor_data)
         self.create_subscription(Float64MultiArray, '/body_schema/estimate', self.on_estimate, LATCHED)

@@ -39,7 +39,8 @@ def _eye(eye: str) -> tuple[ContractTopic, ...]:
 CONTRACT: tuple[ContractTopic, ...] = (
     ContractTopic('/clock', 'rosgraph_msgs/msg/Clock'),
     ContractTopic('/joint_states', 'sensor_msgs/msg/JointState'),
-    ContractTopic('/arm/command', 'trajectory_msgs/msg/JointTrajectory'),
+    # The selector latches its current target, so a late recorder still records the first one.
+    ContractTopic('/arm/command', 'trajectory_msgs/msg/JointTrajectory', latched=True),
     *_eye('left'),
     *_eye('right'),
     ContractTopic('/hand_pose', 'geometry_msgs/msg/PoseWithCovarianceStamped'),

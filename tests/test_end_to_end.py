@@ -114,3 +114,29 @@ def test_a_node_that_dies_fails_the_run_with_its_log_tail(tmp_path: Path) -> Non
     assert proc.returncode == 1, proc.stderr
     assert 'sim exited early' in proc.stderr and '| ' in proc.stderr, proc.stderr
     assert 'image_width' in proc.stderr           # the tail names the cause
+
+
+def test_bag_player_drives_a_fresh_estimator_to_the_online_estimate(run, ros) -> None:
+    """Replay: the recorded joint states, commands and hand poses, played back by the bag player
+    into a new estimator with the run's settings, give the estimate the run ended with."""
+    from rclpy.parameter import Parameter
+
+    from calibration_bringup.player_node import BagPlayerNode
+    from dh_estimator.estimator_node import EstimatorNode
+    from dh_estimator.evaluate import evaluate_bag
+
+    out = _ok(run)
+    est = ros.add(EstimatorNode(context=ros.context, parameter_overrides=[
+        Parameter('initial_seed', value=3), Parameter('export_on_shutdown', value=False)]))
+    player = ros.add(BagPlayerNode(context=ros.context, parameter_overrides=[
+        Parameter('bag', value=str(out / 'calibration.mcap')), Parameter('rate', value=4.0),
+        Parameter('topics', value=['/joint_states', '/arm/command', '/hand_pose']),
+        Parameter('publish_clock', value=False), Parameter('start_paused', value=True)]))
+    pubs = list(player.publishers_by_topic.values())
+    ros.spin_until(lambda: all(p.get_subscription_count() for p in pubs), 15.0, 'the estimator subscribing')
+    player.resume()
+    ros.spin_until(lambda: player.done, 120.0, 'the bag played to its end')
+    online = evaluate_bag(out / 'calibration.mcap')
+    ros.spin_until(lambda: est.estimator.counters['updates'] == online.counters['updates'], 10.0,
+                   f'{online.counters["updates"]} replayed updates (have {est.estimator.counters})')
+    np.testing.assert_allclose(est.estimator.dh, online.online_final_dh, atol=1e-9)

@@ -377,6 +377,8 @@ def run_graph(spec: RunSpec, domain_id: int, settings: GraphSettings = GraphSett
             while len(rows) <= spec.iterations:
                 n = len(rows)
                 executor.spin_once(timeout_sec=0.05)
+                if not ctx.ok():
+                    raise KeyboardInterrupt    # rclpy's signal handler shut the context down
                 if len(rows) > n:
                     # Scored after the fact so the loop pays nothing; the table is the one current
                     # when the record arrived.
@@ -579,11 +581,19 @@ def _run_in_worker(spec: RunSpec, root: str, settings: GraphSettings, record: bo
         if events is not None:
             events.put((spec.label, row['iteration']))
 
+    if _WORKER.get('interrupted'):
+        # Ctrl-C reaches the workers too: runs queued in this worker before it was interrupted end
+        # at once instead of running to completion.
+        raise RunError('not started: the experiment was interrupted')
     log = spec.path(root_p, '.log')
     log.parent.mkdir(parents=True, exist_ok=True)
-    with _output_to(log):
-        rows = run_graph(spec, _WORKER.get('domain_id', 0), settings,
-                         spec.path(root_p, '.mcap') if record else None, tick)
+    try:
+        with _output_to(log):
+            rows = run_graph(spec, _WORKER.get('domain_id', 0), settings,
+                             spec.path(root_p, '.mcap') if record else None, tick)
+    except KeyboardInterrupt:
+        _WORKER['interrupted'] = True
+        raise RunError('interrupted') from None
     write_rows(spec.path(root_p, '.csv'), rows)
     last = rows[-1]
     return {'wall_s': time.perf_counter() - t0, 'position_mm': last['position_mm'],
@@ -661,10 +671,10 @@ def _run_all(todo: list[RunSpec], config: ExperimentConfig, record: bool, stream
                         f"{r['wall_s']:.0f} s, final {r['position_mm']:.1f} mm / {r['orientation_deg']:.2f} deg, "
                         f"movement {r['movement_deg']:.0f} deg"))
         except KeyboardInterrupt:
-            for fut in pending:
-                fut.cancel()
             progress.close()
-            stream.write('experiment: interrupted; finished runs are kept, rerun to resume\n')
+            stream.write('experiment: interrupted; stopping the workers (finished runs are kept, '
+                         'rerun to resume)\n')
+            pool.shutdown(wait=True, cancel_futures=True)
             raise
     progress.close()
     return failures
@@ -709,6 +719,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--image-rate', type=float, default=g.image_rate, help=f'camera rate [Hz, sim] [{g.image_rate}]')
     p.add_argument('--image-size', type=int, nargs=2, default=(g.image_width, g.image_height),
                    metavar=('W', 'H'), help=f'camera resolution [{g.image_width} {g.image_height}]')
+    p.add_argument('--joint-speed', type=float, default=g.max_joint_speed_deg,
+                   help=f'simulated joint speed limit [deg/s] [{g.max_joint_speed_deg}]')
     return p
 
 
@@ -718,7 +730,7 @@ def config_from_args(argv: Sequence[str] | None = None) -> ExperimentConfig:
     reps = a.repetitions if a.repetitions is not None else (QUICK['repetitions'] if a.quick else 50)
     its = a.iterations if a.iterations is not None else (QUICK['iterations'] if a.quick else 50)
     graph = replace(GraphSettings(), image_rate=a.image_rate, image_width=a.image_size[0],
-                    image_height=a.image_size[1])
+                    image_height=a.image_size[1], max_joint_speed_deg=a.joint_speed)
     output = a.output if a.output is not None else (QUICK['output'] if a.quick else Path('results/experiment'))
     return ExperimentConfig(repetitions=reps, iterations=its, methods=tuple(dict.fromkeys(a.methods)),
                             jobs=a.jobs, output=output, seed_base=a.seed_base, record=a.record,

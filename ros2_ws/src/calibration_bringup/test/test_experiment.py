@@ -75,6 +75,8 @@ def test_cli_quick_preset_and_overrides(tmp_path: Path) -> None:
                              '--jobs', '1', '--seed-base', '100'])
     assert (c.repetitions, c.iterations, c.methods, c.record, c.jobs, c.seed_base) == \
         (3, 5, ('AL', 'R'), False, 1, 100)
+    g = ex.config_from_args(['--image-rate', '2.5', '--image-size', '640', '480', '--joint-speed', '45']).graph
+    assert (g.image_rate, g.image_width, g.image_height, g.max_joint_speed_deg) == (2.5, 640, 480, 45.0)
     full = ex.config_from_args([])
     assert (full.repetitions, full.iterations, full.output) == (50, 50, Path('results/experiment'))
     with pytest.raises(SystemExit):

@@ -32,8 +32,9 @@ Time accounting per iteration (CSV columns, wall seconds unless named ``_sim_``)
 (the selector's DIRECT search), ``move_sim_s`` (the simulated move), ``sim_s`` (simulator
 callbacks: physics, rendering, publishing), ``render_s`` (rendering alone), ``detect_s``
 (detector callbacks), ``estimator_s`` (estimator callbacks, the EKF update among them),
-``selector_s`` (selector callbacks, the selection among them), ``recorder_s`` and ``wall_s``
-(everything, the executor's own work included).
+``selector_s`` (selector callbacks, the selection among them), ``recorder_s``, ``cpu_s`` (CPU
+time of the whole process: on a shared machine, what the iteration costs with a core of its own)
+and ``wall_s`` (everything, the executor's own work included).
 """
 from __future__ import annotations
 
@@ -75,7 +76,7 @@ METHODS: dict[str, Method] = {m.name: m for m in (
 COLUMNS: tuple[str, ...] = (
     'method', 'repetition', 'seed', 'iteration', 'outcome', 'detected', 'position_mm', 'orientation_deg',
     'movement_deg', 'discarded', 'selection_s', 'move_sim_s', 'sim_s', 'render_s', 'detect_s',
-    'estimator_s', 'selector_s', 'recorder_s', 'wall_s')
+    'estimator_s', 'selector_s', 'recorder_s', 'cpu_s', 'wall_s')
 
 #: Callback time accounting: CSV column -> node attribute of the graph.
 _NODE_COLUMNS = {'sim_s': 'sim', 'detect_s': 'detector', 'estimator_s': 'estimator',
@@ -347,23 +348,24 @@ def run_graph(spec: RunSpec, domain_id: int, settings: GraphSettings = GraphSett
             rows.append({**base, 'iteration': 0, 'outcome': 'initial', 'detected': '',
                          'position_mm': e0.position_mm, 'orientation_deg': e0.orientation_deg,
                          'movement_deg': 0.0, 'discarded': 0, 'selection_s': 0.0, 'move_sim_s': 0.0,
-                         **{c: 0.0 for c in ('render_s', 'wall_s', *_NODE_COLUMNS)}})
-            last = {'wall': time.perf_counter(), **dict(watch.totals)}
+                         **{c: 0.0 for c in ('render_s', 'cpu_s', 'wall_s', *_NODE_COLUMNS)}})
+            last = {'wall': time.perf_counter(), 'cpu': time.process_time(), **dict(watch.totals)}
             tables: list[np.ndarray] = []
 
             def on_progress(msg: String) -> None:
                 rec = json.loads(msg.data)
-                now = time.perf_counter()
+                now, cpu = time.perf_counter(), time.process_time()
                 tables.append(est.estimator.dh.copy())
                 row = {**base, 'iteration': int(rec['iteration']), 'outcome': rec['outcome'],
                        'detected': bool(rec['detected']), 'movement_deg': float(rec['movement_deg']),
                        'discarded': int(rec['discarded']), 'selection_s': float(rec['selection_s']),
-                       'move_sim_s': float(rec['move_sim_s']), 'wall_s': now - last['wall']}
+                       'move_sim_s': float(rec['move_sim_s']), 'cpu_s': cpu - last['cpu'],
+                       'wall_s': now - last['wall']}
                 for col, key in (*_NODE_COLUMNS.items(), ('render_s', 'render')):
                     total = watch.totals.get(key, 0.0)
                     row[col] = total - last.get(key, 0.0)
                     last[key] = total
-                last['wall'] = now
+                last['wall'], last['cpu'] = now, cpu
                 rows.append(row)
 
             probe = Node('experiment_probe', context=ctx, start_parameter_services=False)

@@ -37,11 +37,11 @@ POSE_DEPENDENT = ('R', 'AL', 'UCSAL', 'CCSAL')
 COLORS = {'R': 'tab:gray', 'AL': 'tab:blue', 'UCSAL': 'tab:orange', 'CCSAL': 'tab:green'}
 #: Numeric columns kept per method as (runs, iterations + 1) arrays.
 NUMERIC = ('position_mm', 'orientation_deg', 'movement_deg', 'discarded', 'selection_s', 'move_sim_s',
-           'sim_s', 'render_s', 'detect_s', 'estimator_s', 'selector_s', 'recorder_s', 'wall_s')
+           'sim_s', 'render_s', 'detect_s', 'estimator_s', 'selector_s', 'recorder_s', 'cpu_s', 'wall_s')
 #: Per-iteration time breakdown of the summary: column -> heading.
 TIMES = {'selection_s': 'selection [s]', 'move_sim_s': 'move, sim [s]', 'render_s': 'render [s]',
          'sim_s': 'sim node [s]', 'detect_s': 'detection [s]', 'estimator_s': 'update [s]',
-         'recorder_s': 'recording [s]', 'wall_s': 'wall [s]'}
+         'recorder_s': 'recording [s]', 'cpu_s': 'CPU [s]', 'wall_s': 'wall [s]'}
 
 
 def _base(method: str) -> str:
@@ -161,8 +161,9 @@ def summary_markdown(data: dict[str, MethodRuns]) -> str:
     lines += ['', '## Time per iteration', '',
               'Means over every iteration of every run. Wall seconds except the simulated move; '
               '"sim node" is the simulator\'s callbacks (physics, rendering, publishing), "detection" '
-              'the detector\'s, "update" the estimator\'s, "other" the wall time outside every node '
-              'callback (executor, middleware, the probe).', '',
+              'the detector\'s, "update" the estimator\'s, "CPU" the CPU time of the run\'s process '
+              '(below the wall time when the machine is shared), "other" the wall time outside every '
+              'node callback (executor, middleware, the probe).', '',
               '| method | ' + ' | '.join(TIMES.values()) + ' | other [s] |',
               '|---|' + '---|' * (len(TIMES) + 1)]
     for name, m in data.items():

@@ -31,7 +31,7 @@ def _rows(method: str, rep: int) -> list[dict]:
                      'selection_s': 0.0 if it == 0 else 0.1, 'move_sim_s': 1.0 * (it > 0),
                      'sim_s': 0.05 * (it > 0), 'render_s': 0.04 * (it > 0), 'detect_s': 0.01 * (it > 0),
                      'estimator_s': 0.002 * (it > 0), 'selector_s': 0.12 * (it > 0), 'recorder_s': 0.0,
-                     'wall_s': 0.3 * (it > 0)})
+                     'cpu_s': 0.25 * (it > 0), 'wall_s': 0.3 * (it > 0)})
     return rows
 
 
@@ -66,7 +66,7 @@ def test_summary_reports_final_statistics(experiment_dir: Path) -> None:
     assert _table_row(summary, 'AL')[6] == '-'
     assert 'AL after 5 iterations: 5.00 mm (target <= 5 mm: met), 0.50 deg' in summary
     timing = next(line for line in summary.splitlines() if line.startswith('| AL | 0.100'))
-    assert re.search(r'\| 0\.300 \| 0\.118 \|$', timing), timing    # wall, other = 0.3 - 0.182
+    assert re.search(r'\| 0\.250 \| 0\.300 \| 0\.118 \|$', timing), timing   # CPU, wall, other = 0.3 - 0.182
 
     names = {p.name for p in outputs}
     assert names == {'error_vs_iteration.png', 'error_vs_movement.png', 'discarded.png',

@@ -96,12 +96,14 @@ class GraphSettings:
     ----------
     image_rate : float
         Camera rate [Hz, sim time]. Frames during a move are never measurement attempts, so a low
-        rate only delays the first frame after settling by up to one period of sim time. Wall
-        time per iteration outside the selection: 0.21 s at 10 Hz, 0.13 s at 5 Hz, 0.13-0.15 s
-        at 2-3.3 Hz (fewer renders, but more sim ticks waiting for the frame).
+        rate only delays the first frame after settling by up to one period of sim time. CPU
+        time per iteration outside the selection, R / AL / CCSAL (30 iterations, 2 seeds):
+        5 Hz 0.23 / 0.18 / 0.11 s, 3.3 Hz 0.19 / 0.14 / 0.10 s, 2.5 Hz 0.16 / 0.12 / 0.09 s,
+        2 Hz 0.18 / 0.11 / 0.10 s (fewer renders, but more sim ticks waiting for the frame);
+        10 Hz cost 0.21 s for AL.
     physics_step : float
         Physics step [s]; the arm is kinematic (placed, not simulated), so one step per
-        joint-state period suffices: 0.24 -> 0.21 s per iteration at 10 Hz.
+        joint-state period suffices: 0.24 -> 0.21 s per AL iteration at 10 Hz.
     max_joint_speed_deg : float
         Joint speed limit [deg/s]. The metrics count degrees, not seconds; the default is the
         simulator's.
@@ -111,7 +113,7 @@ class GraphSettings:
         Wall seconds a run may take per iteration before it is declared stuck (plus one minute).
     """
 
-    image_rate: float = 5.0
+    image_rate: float = 2.5
     physics_step: float = 0.02
     max_joint_speed_deg: float = 30.0
     image_width: int = 320

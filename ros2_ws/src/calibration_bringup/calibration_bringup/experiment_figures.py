@@ -24,7 +24,7 @@ import sys
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -38,6 +38,8 @@ COLORS = {'R': 'tab:gray', 'AL': 'tab:blue', 'UCSAL': 'tab:orange', 'CCSAL': 'ta
 #: Numeric columns kept per method as (runs, iterations + 1) arrays.
 NUMERIC = ('position_mm', 'orientation_deg', 'movement_deg', 'discarded', 'selection_s', 'move_sim_s',
            'sim_s', 'render_s', 'detect_s', 'estimator_s', 'selector_s', 'recorder_s', 'cpu_s', 'wall_s')
+#: Columns without which there is nothing to report.
+REQUIRED = ('position_mm', 'orientation_deg', 'movement_deg', 'discarded')
 #: Per-iteration time breakdown of the summary: column -> heading.
 TIMES = {'selection_s': 'selection [s]', 'move_sim_s': 'move, sim [s]', 'render_s': 'render [s]',
          'sim_s': 'sim node [s]', 'detect_s': 'detection [s]', 'estimator_s': 'update [s]',
@@ -93,14 +95,14 @@ def load_metrics(path: Path | Sequence[Path]) -> dict[str, MethodRuns]:
     Raises
     ------
     ValueError
-        If a CSV lacks a required column or holds no rows.
+        If a CSV lacks a column of :data:`REQUIRED` (time columns may be missing) or holds no rows.
     """
     paths = [Path(path)] if isinstance(path, (str, Path)) else [Path(p) for p in path]
     runs: dict[tuple[str, int], dict[int, dict[str, str]]] = {}
     for p in paths:
         with p.open(newline='') as f:
             reader = csv.DictReader(f)
-            missing = {'method', 'repetition', 'iteration', *NUMERIC} - set(reader.fieldnames or ())
+            missing = {'method', 'repetition', 'iteration', *REQUIRED} - set(reader.fieldnames or ())
             if missing:
                 raise ValueError(f'{p}: missing columns {sorted(missing)}')
             for row in reader:
@@ -116,7 +118,7 @@ def load_metrics(path: Path | Sequence[Path]) -> dict[str, MethodRuns]:
         for i, r in enumerate(reps):
             for it, row in runs[(m, r)].items():
                 for c in NUMERIC:
-                    cols[c][i, it] = _float(row[c])
+                    cols[c][i, it] = _float(row.get(c, ''))     # time columns may be absent: NaN
         out[m] = MethodRuns(m, np.array(reps), cols)
     return out
 
@@ -184,89 +186,113 @@ def _mean_std(a: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.f
         return np.nanmean(a, axis=0), np.nanstd(a, axis=0)
 
 
-def _errorbars(ax: object, x: NDArray[np.float64], a: NDArray[np.float64], label: str, color: str,
-               linestyle: str = '-', offset: float = 0.0) -> None:
-    mean, std = _mean_std(a)
-    ax.errorbar(x + offset, mean, yerr=std, label=label, color=color, linestyle=linestyle, marker='.',
-                markersize=3, capsize=2, elinewidth=0.8, linewidth=1.2)
+def _ticks(iterations: int, groups: int) -> list[int]:
+    """Iterations at which grouped bars are drawn: 0 and every ``iterations / groups`` (paper:
+    0, 12, 24, 36, 48 of 50)."""
+    step = max(1, int(iterations / groups))
+    return list(range(0, iterations + 1, step))
+
+
+def _grouped_bars(ax: Any, data: dict[str, MethodRuns], methods: Sequence[str], column: str,
+                  iterations: Sequence[int]) -> None:
+    """Bars of the mean over repetitions at ``iterations``, one per method, std bars upward (the
+    paper's style: on a log axis a downward bar would leave the plot)."""
+    width = 0.8 / len(methods)
+    x = np.arange(len(iterations), dtype=float)
+    for k, m in enumerate(methods):
+        a = data[m].columns[column]
+        cols = [i for i in iterations if i < a.shape[1]]
+        mean, std = _mean_std(a[:, cols])
+        bars = ax.bar(x[:len(cols)] + (k - (len(methods) - 1) / 2) * width, mean, width,
+                      yerr=[np.zeros_like(std), std], capsize=2, label=m, color=_color(m),
+                      error_kw={'elinewidth': 0.8})
+        if m.endswith('-CN'):
+            for b in bars:
+                b.set_hatch('//')
+                b.set_edgecolor('white')
+    ax.set_xticks(x, [str(i) for i in iterations])
 
 
 _ERRORS = (('position_mm', 'average position error [mm]'), ('orientation_deg', 'average orientation error [deg]'))
 
 
+def _log_y(ax: Any) -> None:
+    """Log y axis with plain numbers (2, 5, 10, 20, not 2 x 10^0)."""
+    from matplotlib.ticker import FuncFormatter, LogFormatter
+
+    ax.set_yscale('log')
+    ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f'{v:g}'))
+    ax.yaxis.set_minor_formatter(LogFormatter(labelOnlyBase=False, minor_thresholds=(1.5, 0.5)))
+
+
 def plot_all(data: dict[str, MethodRuns], out_dir: Path) -> list[Path]:
-    """Write the figures (PNG) into ``out_dir``; returns their paths."""
+    """Write the figures (PNG) into ``out_dir``; returns their paths.
+
+    As in the paper: error vs iteration as grouped bars (mean, std upward) on a log axis at
+    every quarter of the run; error vs accumulated movement as mean curves; CN vs pose-dependent
+    noise as grouped bars at the start, middle and end; discarded samples as bars with std.
+    """
     import matplotlib
 
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
-    from matplotlib.ticker import MaxNLocator
 
     out_dir.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
+    n_its = max(m.iterations for m in data.values())
 
-    def save(fig: object, name: str) -> None:
+    def save(fig: Any, name: str) -> None:
         path = out_dir / name
         fig.tight_layout()
         fig.savefig(path, dpi=120)
         plt.close(fig)
         written.append(path)
 
+    def error_bars(methods: Sequence[str], iterations: Sequence[int], name: str) -> None:
+        fig, axes = plt.subplots(2, 1, figsize=(8, 6.5), sharex=True)
+        for ax, (col, label) in zip(axes, _ERRORS):
+            _grouped_bars(ax, data, methods, col, iterations)
+            ax.set(ylabel=label)
+            _log_y(ax)
+            ax.grid(True, axis='y', which='both', linestyle='--', alpha=0.4)
+        axes[-1].set_xlabel('iteration')
+        axes[0].legend(ncol=min(len(methods), 4), fontsize='small')
+        save(fig, name)
+
     main = [m for m in POSE_DEPENDENT if m in data]
     if main:
-        fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-        for k, m in enumerate(main):
-            x = np.arange(data[m].iterations + 1, dtype=float)
-            for ax, (col, label) in zip(axes, _ERRORS):
-                _errorbars(ax, x, data[m].columns[col], m, _color(m), offset=0.12 * (k - len(main) / 2))
-        for ax, (_, label) in zip(axes, _ERRORS):
-            ax.set(xlabel='iteration', ylabel=label, yscale='log')
-            ax.xaxis.set_major_locator(MaxNLocator(integer=True))
-            ax.grid(True, which='both', alpha=0.3)
-        axes[0].legend()
-        save(fig, 'error_vs_iteration.png')
-
-        fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+        error_bars(main, _ticks(n_its, 4), 'error_vs_iteration.png')
+        fig, axes = plt.subplots(2, 1, figsize=(8, 6.5))
         for m in main:
             mov, _ = _mean_std(data[m].columns['movement_deg'])
             for ax, (col, label) in zip(axes, _ERRORS):
-                mean, std = _mean_std(data[m].columns[col])
-                ax.errorbar(mov, mean, yerr=std, label=m, color=_color(m), marker='.', markersize=3,
-                            capsize=2, elinewidth=0.8, linewidth=1.2)
+                mean, _ = _mean_std(data[m].columns[col])
+                ax.plot(mov, mean, label=m, color=_color(m), marker='.', markersize=4)
         for ax, (_, label) in zip(axes, _ERRORS):
-            ax.set(xlabel='accumulated joint movement [deg]', ylabel=label, yscale='log')
-            ax.grid(True, which='both', alpha=0.3)
-        axes[0].legend()
+            ax.set(xlabel='accumulated joint movement [deg]', ylabel=label)
+            _log_y(ax)
+            ax.grid(True, which='both', linestyle='--', alpha=0.4)
+        axes[0].legend(fontsize='small')
         save(fig, 'error_vs_movement.png')
+
+    pairs = [b for b in ('AL', 'UCSAL', 'CCSAL') if b in data and f'{b}-CN' in data]
+    if pairs:
+        error_bars([f'{b}-CN' for b in pairs] + pairs, _ticks(n_its, 2), 'cn_vs_pose_dependent.png')
 
     names = list(data)
     fig, ax = plt.subplots(figsize=(max(5.0, 1.1 * len(names)), 3.8))
     finals = [data[m].final('discarded') for m in names]
     bars = ax.bar(names, [np.nanmean(v) for v in finals], yerr=[np.nanstd(v) for v in finals], capsize=4,
-                  color=[_color(m) for m in names], alpha=0.85)
+                  color=[_color(m) for m in names])
     for bar, m in zip(bars, names):
         if m.endswith('-CN'):
             bar.set_hatch('//')
+            bar.set_edgecolor('white')
     for i, v in enumerate(finals):
         ax.scatter(np.full(v.size, i) + np.linspace(-0.15, 0.15, v.size), v, s=6, color='black', zorder=3)
-    ax.set(ylabel='discarded samples per run', title='failed measurement attempts')
-    ax.grid(True, axis='y', alpha=0.3)
+    ax.set(ylabel=f'discarded samples in {n_its} iterations', title='failed measurement attempts (mean, std, runs)')
+    ax.grid(True, axis='y', linestyle='--', alpha=0.4)
     save(fig, 'discarded.png')
-
-    pairs = [b for b in ('AL', 'UCSAL', 'CCSAL') if b in data and f'{b}-CN' in data]
-    if pairs:
-        fig, axes = plt.subplots(2, len(pairs), figsize=(4.2 * len(pairs), 6.5), squeeze=False)
-        for j, b in enumerate(pairs):
-            for i, (col, label) in enumerate(_ERRORS):
-                ax = axes[i, j]
-                for m, style, off in ((b, '-', -0.1), (f'{b}-CN', '--', 0.1)):
-                    x = np.arange(data[m].iterations + 1, dtype=float)
-                    _errorbars(ax, x, data[m].columns[col], m, _color(m), style, off)
-                ax.set(xlabel='iteration', ylabel=label, yscale='log')
-                ax.xaxis.set_major_locator(MaxNLocator(integer=True))
-                ax.grid(True, which='both', alpha=0.3)
-                ax.legend()
-        save(fig, 'cn_vs_pose_dependent.png')
     return written
 
 

@@ -97,6 +97,17 @@ def test_shorter_runs_are_padded_not_misaligned(tmp_path: Path) -> None:
     assert data['AL'].final('position_mm').tolist() == [4.0, 5.0 + ITERATIONS - 2]
 
 
+def test_time_columns_are_optional(tmp_path: Path) -> None:
+    rows = _rows('AL', 0)
+    keep = ['method', 'repetition', 'iteration', *figs.REQUIRED]
+    (tmp_path / 'metrics.csv').write_text(
+        ','.join(keep) + '\n' + ''.join(','.join(str(r[k]) for k in keep) + '\n' for r in rows))
+    figs.render(tmp_path)
+    timing = next(line for line in (tmp_path / 'summary.md').read_text().splitlines()
+                  if line.startswith('| AL | nan'))
+    assert timing.count('nan') == len(figs.TIMES) + 1      # and 'other'
+
+
 def test_bad_inputs_are_named(tmp_path: Path) -> None:
     bad = tmp_path / 'metrics.csv'
     bad.write_text('method,repetition,iteration\nAL,0,0\n')

@@ -56,7 +56,8 @@ def _color(method: str) -> str:
 
 @dataclass
 class MethodRuns:
-    """All runs of one method: each numeric column as an array (runs, iterations + 1), NaN-padded."""
+    """All runs of one method: each numeric column as an array (runs, iterations + 1), NaN-padded,
+    plus ``rejected``: the running count of observations the estimator's gate refused."""
 
     method: str
     repetitions: NDArray[np.int64]
@@ -114,11 +115,14 @@ def load_metrics(path: Path | Sequence[Path]) -> dict[str, MethodRuns]:
     for m in methods:
         reps = sorted(r for mm, r in runs if mm == m)
         n = max(max(runs[(m, r)]) for r in reps) + 1
-        cols = {c: np.full((len(reps), n), np.nan) for c in NUMERIC}
+        cols = {c: np.full((len(reps), n), np.nan) for c in (*NUMERIC, 'rejected')}
         for i, r in enumerate(reps):
             for it, row in runs[(m, r)].items():
                 for c in NUMERIC:
                     cols[c][i, it] = _float(row.get(c, ''))     # time columns may be absent: NaN
+                cols['rejected'][i, it] = row.get('outcome') == 'rejected'
+            # Observations refused by the estimator's gate so far (NaN stays NaN past a run's end).
+            cols['rejected'][i] = np.cumsum(cols['rejected'][i])
         out[m] = MethodRuns(m, np.array(reps), cols)
     return out
 
@@ -141,10 +145,11 @@ def summary_markdown(data: dict[str, MethodRuns]) -> str:
              f'{", ".join(data)}; {"/".join(map(str, sorted(n_runs)))} repetitions, '
              f'{"/".join(map(str, sorted(its)))} iterations per run. Mean +- standard deviation over '
              'repetitions of the values after the last iteration; errors averaged over 1000 '
-             'configurations of the calibration box.', '',
+             'configurations of the calibration box; "discarded": failed detections; "rejected": '
+             'detections the estimator\'s outlier gate refused.', '',
              '| method | runs | position [mm] | orientation [deg] | initial position [mm] | movement [deg] '
-             '| movement / AL | discarded |',
-             '|---|---|---|---|---|---|---|---|']
+             '| movement / AL | discarded | rejected by the gate |',
+             '|---|---|---|---|---|---|---|---|---|']
     for name, m in data.items():
         ref_name = 'AL-CN' if name.endswith('-CN') else 'AL'
         ratio = '-'
@@ -153,7 +158,8 @@ def summary_markdown(data: dict[str, MethodRuns]) -> str:
             ratio = f'{np.nanmean(m.final("movement_deg")) / ref:.2f}' if ref > 0 else '-'
         lines.append(f'| {name} | {m.n_runs} | {_pm(m.final("position_mm"), 2)} | '
                      f'{_pm(m.final("orientation_deg"), 2)} | {_pm(m.columns["position_mm"][:, 0], 1)} | '
-                     f'{_pm(m.final("movement_deg"), 0)} | {ratio} | {_pm(m.final("discarded"), 1)} |')
+                     f'{_pm(m.final("movement_deg"), 0)} | {ratio} | {_pm(m.final("discarded"), 1)} | '
+                     f'{_pm(m.final("rejected"), 1)} |')
     if 'AL' in data:
         al = data['AL']
         p, o = np.nanmean(al.final('position_mm')), np.nanmean(al.final('orientation_deg'))

@@ -24,7 +24,8 @@ def _rows(method: str, rep: int) -> list[dict]:
     for it in range(ITERATIONS + 1):
         final = BASE_ERROR[method] + rep
         rows.append({'method': method, 'repetition': rep, 'seed': rep, 'iteration': it,
-                     'outcome': 'initial' if it == 0 else 'accepted', 'detected': it > 0,
+                     'outcome': 'initial' if it == 0 else ('rejected' if (it, rep) == (2, 2) else 'accepted'),
+                     'detected': it > 0,
                      'position_mm': 100.0 if it == 0 else final + (ITERATIONS - it),
                      'orientation_deg': 30.0 if it == 0 else final / 10,
                      'movement_deg': STEP[method] * it, 'discarded': min(it, rep),
@@ -60,6 +61,7 @@ def test_summary_reports_final_statistics(experiment_dir: Path) -> None:
         assert cells[4] == '100.0 +- 0.0'                                 # initial position
         assert cells[5] == f'{STEP[method] * ITERATIONS:.0f} +- 0'        # total movement
         assert cells[7] == f'{1.0:.1f} +- {std:.1f}'                      # discarded: min(5, rep)
+        assert cells[8] == f'{1 / 3:.1f} +- {np.std([0, 0, 1]):.1f}'      # rejected: once in rep 2
     # Movement relative to AL with the same noise model.
     assert _table_row(summary, 'UCSAL')[6] == '0.40' and _table_row(summary, 'CCSAL')[6] == '0.50'
     assert _table_row(summary, 'UCSAL-CN')[6] == '0.50' and _table_row(summary, 'CCSAL-CN')[6] == '0.25'

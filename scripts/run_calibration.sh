@@ -161,20 +161,23 @@ start selector active_selector selector_node --ros-args --params-file "$config/s
 
 # --- Wait for the selector; a node that dies fails the run ----------------------------------
 shown=0
+echo_iterations() {   # the selector's one log line per iteration, those not shown yet
+  local lines
+  lines=$(grep ' iteration [0-9]*/' "$output/logs/selector.log" 2>/dev/null | sed 's/^.*\]: /  /') || true
+  [ -n "$lines" ] || return 0
+  tail -n +$((shown + 1)) <<<"$lines"
+  shown=$(wc -l <<<"$lines")
+}
 while alive selector; do
   for name in recorder sim detector estimator; do
     alive "$name" || { wait "${pid[$name]}" && rc=0 || rc=$?; fail "$name" "exited early (status $rc)"; }
   done
   (( SECONDS - wall0 <= timeout )) || fail selector "did not finish $iterations iterations within $timeout s"
-  lines=$(grep -c ' iteration [0-9]*/' "$output/logs/selector.log" 2>/dev/null || true)
-  if (( lines > shown )); then   # echo the selector's one line per iteration
-    grep ' iteration [0-9]*/' "$output/logs/selector.log" | sed -n "$((shown + 1)),${lines}p" | sed 's/^.*\]: /  /'
-    shown=$lines
-  fi
+  echo_iterations
   sleep 0.2
 done
 wait "${pid[selector]}" && rc=0 || rc=$?
-grep ' iteration [0-9]*/' "$output/logs/selector.log" | sed -n "$((shown + 1)),\$p" | sed 's/^.*\]: /  /'
+echo_iterations
 (( rc == 0 )) || fail selector "failed (status $rc)"
 wall=$((SECONDS - wall0))
 

@@ -16,24 +16,17 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from mcap.reader import make_reader
-
 from dh_estimator.evaluate import (Evaluation, EvaluationSettings, evaluate_bag, plot_rows, summary_text,
                                    write_csv)
+
+from . import bag
 
 __all__ = ['bag_contents', 'render_report', 'main']
 
 
 def bag_contents(path: str | Path) -> list[tuple[str, str, int]]:
     """(topic, type, message count) of every channel in an MCAP file, sorted by topic."""
-    with open(path, 'rb') as f:
-        summary = make_reader(f).get_summary()
-    if summary is None:
-        raise ValueError(f'{path}: no summary section (was the recorder stopped cleanly?)')
-    counts = summary.statistics.channel_message_counts if summary.statistics else {}
-    rows = [(ch.topic, summary.schemas[ch.schema_id].name if ch.schema_id in summary.schemas else '?',
-             counts.get(cid, 0)) for cid, ch in summary.channels.items()]
-    return sorted(rows)
+    return sorted((t.name, t.type, t.count) for t in bag.summary(path).topics.values())
 
 
 def render_report(ev: Evaluation, bag: Path, title: str, wall_seconds: float | None) -> str:

@@ -57,13 +57,12 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
-from body_schema import ekf as ekf_mod
 from body_schema import load_robot, sampling
 from body_schema.noise import ConstantNoise
 
 from .estimator import EstimatorSettings, OnlineEstimator, Outcome
 from .pairing import Attempt, ObservationPairer, PairingSettings
-from .messages import covariance_to_msg, pose_msg_to_matrix, stamp_to_seconds, table_to_msg
+from .messages import covariance_to_msg, joints_in_order, pose_msg_to_matrix, stamp_to_seconds, table_to_msg
 
 _CN = ConstantNoise()      # fitted CN defaults live in body_schema.noise
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -172,30 +171,26 @@ class EstimatorNode(Node):
     # ---------------------------------------------------------------------------------------
 
     def on_joint_state(self, msg: JointState) -> None:
-        names = list(msg.name)
-        try:
-            idx = [names.index(n) for n in self.model.joint_names]
-        except ValueError:
+        q = joints_in_order(msg.name, msg.position, self.model.joint_names)
+        if q is None:
+            names = list(msg.name)
             missing = sorted(set(self.model.joint_names) - set(names))
-            self._warn_once('names', f'/joint_states lacks joints {missing} (got {names}); ignored')
+            if missing:
+                self._warn_once('names', f'/joint_states lacks joints {missing} (got {names}); ignored')
+            else:
+                self._warn_once('len', f'/joint_states has {len(names)} names but {len(msg.position)} '
+                                       'positions; ignored')
             return
-        if len(msg.position) != len(names):
-            self._warn_once('len', f'/joint_states has {len(names)} names but {len(msg.position)} positions; ignored')
-            return
-        q = np.array([msg.position[i] for i in idx], dtype=float)
         if not np.all(np.isfinite(q)):
             self.get_logger().warning(f'/joint_states with non-finite positions {q}; ignored')
             return
         self._handle(self.pairer.joint_state(stamp_to_seconds(msg.header.stamp), q))
 
     def on_command(self, msg: JointTrajectory) -> None:
-        names = list(msg.joint_names)
-        if not msg.points or any(n not in names for n in self.model.joint_names):
-            return                  # partial or empty commands are the simulator's to reject
-        last = msg.points[-1].positions
-        if len(last) != len(names):
-            return
-        self.pairer.command([last[names.index(n)] for n in self.model.joint_names])
+        q = joints_in_order(msg.joint_names, msg.points[-1].positions, self.model.joint_names) \
+            if msg.points else None
+        if q is not None:           # partial or empty commands are the simulator's to reject
+            self.pairer.command(q)
 
     def on_hand_pose(self, msg: PoseWithCovarianceStamped) -> None:
         try:

@@ -37,7 +37,7 @@ from body_schema.metrics import PoseErrorEvaluator
 from body_schema.noise import ConstantNoise
 
 from .estimator import EstimatorSettings, OnlineEstimator
-from .messages import msg_to_covariance, msg_to_table, pose_msg_to_matrix, stamp_to_seconds
+from .messages import joints_in_order, msg_to_covariance, msg_to_table, pose_msg_to_matrix, stamp_to_seconds
 from .pairing import ObservationPairer, PairingSettings
 
 __all__ = ['BagFormatError', 'EvaluationSettings', 'IterationRow', 'Evaluation', 'evaluate_bag',
@@ -122,13 +122,6 @@ def _messages(path: Path, topics: Sequence[str]) -> Iterator[tuple[str, int, Any
             yield channel.topic, message.log_time, msg
 
 
-def _joints(names: Sequence[str], positions: Sequence[float], order: Sequence[str]) -> NDArray[np.float64] | None:
-    names = list(names)
-    if any(n not in names for n in order) or len(positions) != len(names):
-        return None
-    return np.array([positions[names.index(n)] for n in order], dtype=float)
-
-
 def evaluate_bag(path: str | Path, settings: EvaluationSettings = EvaluationSettings()) -> Evaluation:
     """Re-run the filter on a bag and score every iteration.
 
@@ -156,15 +149,14 @@ def evaluate_bag(path: str | Path, settings: EvaluationSettings = EvaluationSett
     model = load_robot(settings.robot)
     names = model.joint_names
     cn = ConstantNoise(settings.cn_sigma_pos, np.radians(settings.cn_sigma_rot_deg))
-    widths = (sampling.PAPER_WIDTH_LENGTH, np.radians(54.0))
     x0: NDArray[np.float64] | None = None
     P0: NDArray[np.float64] | None = None  # noqa: N806
     if settings.initial == 'nominal':
         x0 = model.dh.copy()
     elif settings.initial == 'perturbed':
-        x0 = sampling.perturb_dh(model.dh, settings.initial_seed, *widths)
+        x0 = sampling.perturb_dh(model.dh, settings.initial_seed)
     if x0 is not None:
-        P0 = sampling.initial_covariance(model.n_joints, *widths)  # noqa: N806
+        P0 = sampling.initial_covariance(model.n_joints)  # noqa: N806
 
     estimator: OnlineEstimator | None = None
     pairer: ObservationPairer | None = None
@@ -182,12 +174,12 @@ def evaluate_bag(path: str | Path, settings: EvaluationSettings = EvaluationSett
 
     def feed(topic: str, msg: Any) -> None:
         if topic == '/joint_states':
-            q = _joints(msg.name, msg.position, names)
+            q = joints_in_order(msg.name, msg.position, names)
             if q is not None and np.all(np.isfinite(q)):
                 pairer.joint_state(stamp_to_seconds(msg.header.stamp), q)
         elif topic == '/arm/command':
             if msg.points:
-                q = _joints(msg.joint_names, msg.points[-1].positions, names)
+                q = joints_in_order(msg.joint_names, msg.points[-1].positions, names)
                 if q is not None:
                     pairer.command(q)
         else:   # /hand_pose

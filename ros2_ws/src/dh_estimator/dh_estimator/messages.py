@@ -10,6 +10,8 @@ parameter order, dims ``params_row`` and ``params_col``.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from geometry_msgs.msg import Pose
@@ -17,7 +19,7 @@ from scipy.spatial.transform import Rotation
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
 __all__ = ['table_to_msg', 'msg_to_table', 'covariance_to_msg', 'msg_to_covariance', 'MessageFormatError',
-           'pose_msg_to_matrix', 'matrix_to_pose_msg', 'stamp_to_seconds']
+           'pose_msg_to_matrix', 'matrix_to_pose_msg', 'stamp_to_seconds', 'joints_in_order']
 
 
 class MessageFormatError(ValueError):
@@ -87,6 +89,19 @@ def matrix_to_pose_msg(t: ArrayLike) -> Pose:
     msg.orientation.x, msg.orientation.y, msg.orientation.z, msg.orientation.w = (
         float(x), float(y), float(z), float(w))
     return msg
+
+
+def joints_in_order(names: Sequence[str], positions: Sequence[float],
+                    order: Sequence[str]) -> NDArray[np.float64] | None:
+    """Positions of the joints ``order`` from a named message (JointState, a trajectory point).
+
+    Returns shape (len(order),), or None when a joint of ``order`` is missing or the message has
+    a different number of names and positions.
+    """
+    names = list(names)
+    if len(positions) != len(names) or any(n not in names for n in order):
+        return None
+    return np.array([positions[names.index(n)] for n in order], dtype=float)
 
 
 def stamp_to_seconds(stamp: object) -> float:

@@ -13,7 +13,7 @@ import argparse
 import json
 import sys
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Sequence
 
 import cv2
@@ -39,6 +39,10 @@ class EpisodeResult:
     movement_deg: list[float]
     discarded: int
     seconds: float
+    #: (q, pose, R) of every observation the estimator used, in order.
+    observations: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=list)
+    #: The estimator at the end of the run.
+    estimator: OnlineEstimator | None = None
 
 
 def run_episode(model: ArmModel, world: object, x0: np.ndarray,
@@ -55,6 +59,7 @@ def run_episode(model: ArmModel, world: object, x0: np.ndarray,
     planner = Planner(model, noise, settings)
     planner.start = start
     pos, rot, mov = [evaluator(x0).position_mm], [evaluator(x0).orientation_deg], [0.0]
+    used = []
     t0 = time.perf_counter()
     for _ in range(iterations):
         sel = planner.select(est.dh, est.P, cam)
@@ -65,12 +70,14 @@ def run_episode(model: ArmModel, world: object, x0: np.ndarray,
         outcome = 'failed'
         if res.success:
             outcome = est.offer(theta, res.hand.pose, res.hand.covariance).value
+            if outcome in ('accepted', 'outlier'):
+                used.append((theta, res.hand.pose, res.hand.covariance))
         a = planner.record(theta, theta, outcome, res.success, sel.seconds)
         e = evaluator(est.dh)
         pos.append(e.position_mm)
         rot.append(e.orientation_deg)
         mov.append(a.movement_deg)
-    return EpisodeResult(pos, rot, mov, planner.discarded, time.perf_counter() - t0)
+    return EpisodeResult(pos, rot, mov, planner.discarded, time.perf_counter() - t0, used, est)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -88,6 +95,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument('--occlusion-mode', default=_DEF.occlusion_mode)
     ap.add_argument('--max-evals', type=int, default=_DEF.selector.max_evals)
     ap.add_argument('--noise', default='pose_dependent')
+    ap.add_argument('--estimator', default='map', choices=['map', 'ekf'])
     ap.add_argument('--ekf-iterations', type=int, default=5)
     args = ap.parse_args(argv)
 
@@ -109,7 +117,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             s = replace(settings, selector=replace(settings.selector, seed=seed))
             r = run_episode(model, world, x0, s, noise, args.iterations,
                             model.calibration_box.mean(axis=1), evaluator,
-                            EstimatorSettings(iterations=args.ekf_iterations))
+                            EstimatorSettings(estimator=args.estimator, iterations=args.ekf_iterations))
         results.append(r)
     pos = np.array([r.position_mm for r in results])
     rot = np.array([r.orientation_deg for r in results])

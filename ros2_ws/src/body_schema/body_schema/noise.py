@@ -23,7 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from .robot import MarkerPlacement
 
-__all__ = ['view_geometry', 'NoiseModel', 'PoseDependentNoise', 'ConstantNoise', 'noise_model']
+__all__ = ['view_geometry', 'NoiseModel', 'PoseDependentNoise', 'ConstantNoise', 'noise_model', 'sample_pose']
 
 #: phi beyond which a marker is seen edge-on or from behind and cannot be detected [deg].
 MAX_VIEW_ANGLE_DEG = 90.0
@@ -200,3 +200,28 @@ def noise_model(kind: str, **params: float) -> PoseDependentNoise | ConstantNois
     if kind in ('constant', 'cn'):
         return ConstantNoise(**params)
     raise ValueError(f"unknown noise model {kind!r}; expected 'pose_dependent' or 'constant'")
+
+
+def sample_pose(pose: ArrayLike, cov: ArrayLike, rng: np.random.Generator) -> NDArray[np.float64]:
+    """A noisy observation of ``pose`` drawn from ``N(0, cov)`` in the residual's coordinates.
+
+    The position is offset by ``e[:3]`` and the rotation left-multiplied by ``exp([e[3:]]x)``,
+    so ``(p_z - p, log(R_z R^T)) = e``: exactly the noise the estimators' residual assumes.
+
+    Parameters
+    ----------
+    pose : array_like, shape (4, 4)
+    cov : array_like, shape (6, 6)
+    rng : numpy.random.Generator
+
+    Returns
+    -------
+    ndarray, shape (4, 4)
+    """
+    from scipy.spatial.transform import Rotation
+
+    e = rng.multivariate_normal(np.zeros(6), np.asarray(cov, dtype=float))
+    z = np.array(pose, dtype=float)
+    z[:3, 3] += e[:3]
+    z[:3, :3] = Rotation.from_rotvec(e[3:]).as_matrix() @ z[:3, :3]
+    return z

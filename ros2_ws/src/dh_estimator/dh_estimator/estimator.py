@@ -1,7 +1,10 @@
 """The online DH estimator behind the node (pure Python, no rclpy).
 
-Wraps :class:`body_schema.ekf.ExtendedKalmanFilter` with what an online calibration needs: one
-update per static configuration (a repeated observation of the same configuration is not new
+Wraps one of two estimators with what an online calibration needs: the online MAP estimator
+(:class:`body_schema.map_estimator.MapEstimator`, the default: re-solves prior + observations
+after each one, robust loss, adapts to a changing body) or the paper's EKF
+(:class:`body_schema.ekf.ExtendedKalmanFilter`, ``estimator='ekf'``, ``iterations=1`` for the
+paper's form); plus one update per static configuration (a repeated observation of the same configuration is not new
 evidence), counters, an atomic checkpoint of ``(x, P, counters)`` to resume after a crash, and
 export of the calibrated model as a DH-table YAML with one-sigma uncertainties and as a URDF.
 """
@@ -19,31 +22,42 @@ from numpy.typing import ArrayLike, NDArray
 
 from body_schema import ArmModel
 from body_schema import ekf as ekf_mod
+from body_schema.map_estimator import LOSSES, MapEstimator, MapSettings
 from body_schema.urdf import model_urdf
 
-__all__ = ['Outcome', 'EstimatorSettings', 'OnlineEstimator']
+__all__ = ['Outcome', 'EstimatorSettings', 'OnlineEstimator', 'ESTIMATORS']
+
+#: Estimator back ends: the online MAP smoother (default) and the paper's EKF.
+ESTIMATORS = ('map', 'ekf')
 
 
 class Outcome(str, enum.Enum):
     """What became of one offered observation."""
 
-    ACCEPTED = 'accepted'     # EKF updated
-    REJECTED = 'rejected'     # outside the Mahalanobis gate; state unchanged
+    ACCEPTED = 'accepted'     # the estimate used it
+    OUTLIER = 'outlier'       # MAP: used under the robust loss, but beyond the outlier bound at the solution
+    REJECTED = 'rejected'     # EKF: outside the Mahalanobis gate; state unchanged
     DUPLICATE = 'duplicate'   # same configuration as the previous attempt; not new evidence
 
 
 @dataclass(frozen=True)
 class EstimatorSettings:
-    """Filter settings.
+    """Estimator settings.
 
     Attributes
     ----------
+    estimator : str
+        ``'map'`` (online MAP smoother, default) or ``'ekf'`` (the paper's filter).
     q_length, q_angle : float
-        Process-noise variances per step for lengths [m^2] and angles [rad^2].
+        Random-walk (process-noise) variances per observation for lengths [m^2] and angles
+        [rad^2], for both estimators.
     gate_probability : float
-        Chi-square probability of the Mahalanobis gate; 0 disables gating.
+        EKF: chi-square probability of the Mahalanobis gate; 0 disables gating.
     iterations : int
-        Linearisations per update (1: the paper's EKF; more: iterated EKF).
+        EKF: linearisations per update (1: the paper's EKF; more: iterated EKF).
+    loss, loss_scale, outlier_probability, window, change_probability, change_window,
+    jump_length, jump_angle, max_nfev :
+        MAP: see :class:`body_schema.map_estimator.MapSettings`.
     same_config_tol : float
         Max-abs joint difference [rad] under which a configuration counts as the previous one.
     gate_warmup : int
@@ -53,14 +67,37 @@ class EstimatorSettings:
         early gate would throw away the most informative samples.
     """
 
+    estimator: str = 'map'
     q_length: float = 0.0
     q_angle: float = 0.0
     gate_probability: float = 0.999
     iterations: int = 1
     same_config_tol: float = 1e-3
     gate_warmup: int = 10
+    loss: str = MapSettings.loss
+    loss_scale: float = MapSettings.loss_scale
+    outlier_probability: float = MapSettings.outlier_probability
+    window: int = MapSettings.window
+    change_probability: float = MapSettings.change_probability
+    change_window: int = MapSettings.change_window
+    jump_length: float = MapSettings.jump_length
+    jump_angle: float = MapSettings.jump_angle
+    max_nfev: int = MapSettings.max_nfev
+
+    def map_settings(self) -> MapSettings:
+        """The MAP estimator's settings (validated there)."""
+        return MapSettings(loss=self.loss, loss_scale=self.loss_scale,
+                           outlier_probability=self.outlier_probability, max_nfev=self.max_nfev,
+                           window=self.window, q_length=self.q_length, q_angle=self.q_angle,
+                           change_probability=self.change_probability,
+                           change_window=self.change_window, jump_length=self.jump_length,
+                           jump_angle=self.jump_angle)
 
     def __post_init__(self) -> None:
+        if self.estimator not in ESTIMATORS:
+            raise ValueError(f'estimator must be one of {ESTIMATORS}, got {self.estimator!r}')
+        if self.loss not in LOSSES:
+            raise ValueError(f'loss must be one of {LOSSES}, got {self.loss!r}')
         if self.q_length < 0 or self.q_angle < 0:
             raise ValueError(f'process noise must be >= 0, got {self.q_length}, {self.q_angle}')
         if not 0.0 <= self.gate_probability < 1.0:
@@ -72,14 +109,15 @@ class EstimatorSettings:
 
 
 class OnlineEstimator:
-    """EKF over a model's DH table with one update per configuration.
+    """Online DH estimate (MAP or EKF) with one update per configuration.
 
     Parameters
     ----------
     model : ArmModel
-        The robot (its ``dh`` is not used as the estimate; ``x0`` is).
+        The robot (its ``dh`` is not used as the estimate; ``x0`` is). Its joint limits bound
+        the configurations the MAP estimator accepts.
     x0 : array_like, shape (L, 4) or (4 L,)
-        Initial DH guess.
+        Initial DH guess (the prior mean).
     P0 : array_like, shape (4 L, 4 L)
         Initial covariance.
     settings : EstimatorSettings
@@ -90,29 +128,66 @@ class OnlineEstimator:
         self.model = model
         self.settings = settings
         n = model.n_params
-        per_link = np.array([settings.q_length, settings.q_length, settings.q_angle, settings.q_angle])
-        self.gate = ekf_mod.chi2_gate(6, settings.gate_probability) if settings.gate_probability > 0 else None
-        self.ekf = ekf_mod.ExtendedKalmanFilter(np.asarray(x0, dtype=float).ravel(), P0,
-                                                Q=np.diag(np.tile(per_link, model.n_joints)))
-        if self.ekf.dim_x != n:
-            raise ValueError(f'initial guess has {self.ekf.dim_x} parameters, the model {n}')
-        self.hand = ekf_mod.HandPoseModel(model.base, model.n_joints)
+        x0 = np.asarray(x0, dtype=float).ravel()
+        if x0.size != n:
+            raise ValueError(f'initial guess has {x0.size} parameters, the model {n}')
+        self.ekf: ekf_mod.ExtendedKalmanFilter | None = None
+        self.map: MapEstimator | None = None
+        if settings.estimator == 'map':
+            self.map = MapEstimator(model.base, x0, P0, settings.map_settings(), limits=model.limits)
+        else:
+            per_link = np.array([settings.q_length, settings.q_length, settings.q_angle, settings.q_angle])
+            self.gate = ekf_mod.chi2_gate(6, settings.gate_probability) if settings.gate_probability > 0 else None
+            self.ekf = ekf_mod.ExtendedKalmanFilter(x0, P0, Q=np.diag(np.tile(per_link, model.n_joints)))
+            self.hand = ekf_mod.HandPoseModel(model.base, model.n_joints)
         self.last_config: NDArray[np.float64] | None = None
         self.n_duplicates = 0
 
     @property
+    def x(self) -> NDArray[np.float64]:
+        """Current estimate, shape (4 L,)."""
+        return self.map.x if self.map is not None else self.ekf.x
+
+    @property
     def dh(self) -> NDArray[np.float64]:
         """Current estimate, shape (L, 4)."""
-        return self.ekf.x.reshape(self.model.dh.shape)
+        return self.x.reshape(self.model.dh.shape)
 
     @property
     def P(self) -> NDArray[np.float64]:  # noqa: N802
-        return self.ekf.P
+        return self.map.P if self.map is not None else self.ekf.P
+
+    @property
+    def mahalanobis(self) -> float:
+        """Mahalanobis distance of the last offered observation's innovation (before its update)."""
+        if self.map is not None:
+            return 0.0 if self.map.last is None else self.map.last.mahalanobis
+        return self.ekf.mahalanobis
+
+    @property
+    def nis(self) -> float:
+        """Normalised innovation squared of the last offered observation."""
+        return self.mahalanobis ** 2
 
     @property
     def counters(self) -> dict[str, int]:
+        if self.map is not None:
+            return {'updates': self.map.n_updates, 'rejected': 0, 'duplicates': self.n_duplicates,
+                    'outliers': self.map.n_outliers, 'changes': self.map.n_changes}
         return {'updates': self.ekf.n_updates, 'rejected': self.ekf.n_rejected,
-                'duplicates': self.n_duplicates}
+                'duplicates': self.n_duplicates, 'outliers': self.ekf.n_rejected, 'changes': 0}
+
+    def describe_last(self) -> str:
+        """One line on the last offered observation, for logs and status messages."""
+        if self.map is not None and self.map.last is not None:
+            u = self.map.last
+            text = f'mahalanobis {u.mahalanobis:.3f}, residual chi2 {u.residual_chi2:.2f}'
+            if u.outlier:
+                text += f' beyond the {self.settings.outlier_probability:.1%} bound: outlier'
+            if u.change_detected:
+                text += '; change detected, older evidence aged'
+            return text
+        return f'mahalanobis {self.mahalanobis:.3f}'
 
     def is_duplicate(self, q: ArrayLike) -> bool:
         """Whether ``q`` is the configuration of the previous attempt."""
@@ -133,12 +208,21 @@ class OnlineEstimator:
         Raises
         ------
         body_schema.ekf.InvalidInputError
-            On NaN or mis-shaped input; nothing changes.
+            On NaN, mis-shaped or out-of-limits input; nothing changes.
+        body_schema.ekf.FilterError
+            If the estimator cannot use it (nothing changes).
         """
         q = np.asarray(q, dtype=float)
+        if q.shape != (self.model.n_joints,):
+            raise ekf_mod.InvalidInputError(f'joint configuration must have shape ({self.model.n_joints},), '
+                                            f'got {q.shape}')
         if self.is_duplicate(q):
             self.n_duplicates += 1
             return Outcome.DUPLICATE
+        if self.map is not None:
+            u = self.map.update(q, pose, R)
+            self.last_config = q.copy()
+            return Outcome.OUTLIER if u.outlier else Outcome.ACCEPTED
         x, P = self.ekf.x, self.ekf.P  # noqa: N806
         self.ekf.gate = self.gate if self.ekf.n_updates >= self.settings.gate_warmup else None
         self.ekf.predict()
@@ -156,26 +240,34 @@ class OnlineEstimator:
     # Checkpoint and export
 
     def save_checkpoint(self, path: str | Path) -> None:
-        """Write ``x, P``, counters and the last configuration atomically (``.npz``)."""
+        """Write the estimator's state, counters and the last configuration atomically (``.npz``)."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix='.tmp')
+        state = self.map.state_dict() if self.map is not None else {
+            'x': self.ekf.x, 'P': self.ekf.P, 'n_updates': self.ekf.n_updates, 'n_rejected': self.ekf.n_rejected}
         with os.fdopen(fd, 'wb') as f:
-            np.savez(f, x=self.ekf.x, P=self.ekf.P, n_updates=self.ekf.n_updates,
-                     n_rejected=self.ekf.n_rejected, n_duplicates=self.n_duplicates,
+            np.savez(f, estimator=self.settings.estimator, n_duplicates=self.n_duplicates,
                      last_config=np.full(self.model.n_joints, np.nan) if self.last_config is None
-                     else self.last_config, settings=yaml.safe_dump(asdict(self.settings)))
+                     else self.last_config, settings=yaml.safe_dump(asdict(self.settings)), **state)
         os.replace(tmp, path)
 
     def load_checkpoint(self, path: str | Path) -> None:
-        """Restore the state written by :meth:`save_checkpoint`."""
+        """Restore the state written by :meth:`save_checkpoint` (same estimator kind)."""
         with np.load(Path(path)) as d:
-            x, P = d['x'], d['P']  # noqa: N806
-            if x.shape != self.ekf.x.shape or P.shape != self.ekf.P.shape:
-                raise ValueError(f'checkpoint {path} holds {x.size} parameters, expected {self.ekf.x.size}')
-            self.ekf.x, self.ekf.P = x.copy(), P.copy()
-            self.ekf.n_updates = int(d['n_updates'])
-            self.ekf.n_rejected = int(d['n_rejected'])
+            kind = str(d['estimator']) if 'estimator' in d else 'ekf'
+            if kind != self.settings.estimator:
+                raise ValueError(f'checkpoint {path} was written by the {kind!r} estimator, '
+                                 f'this one is {self.settings.estimator!r}')
+            if self.map is not None:
+                self.map.load_state_dict(dict(d))
+            else:
+                x, P = d['x'], d['P']  # noqa: N806
+                if x.shape != self.ekf.x.shape or P.shape != self.ekf.P.shape:
+                    raise ValueError(f'checkpoint {path} holds {x.size} parameters, expected {self.ekf.x.size}')
+                self.ekf.x, self.ekf.P = x.copy(), P.copy()
+                self.ekf.n_updates = int(d['n_updates'])
+                self.ekf.n_rejected = int(d['n_rejected'])
             self.n_duplicates = int(d['n_duplicates'])
             last = d['last_config']
             self.last_config = None if np.any(np.isnan(last)) else last.copy()

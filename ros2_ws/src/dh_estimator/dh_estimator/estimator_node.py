@@ -90,6 +90,9 @@ class EstimatorNode(Node):
         p('initial_dh_file', '', ParameterDescriptor(description='DH table YAML (as exported) for initial_guess=file'))
         p('width_length', sampling.PAPER_WIDTH_LENGTH, _float('Full width of the a, d prior [m]', 1e-6, 1.0))
         p('width_angle_deg', 54.0, _float('Full width of the alpha, offset prior [deg]', 1e-4, 180.0))
+        p('estimator', 'map', ParameterDescriptor(
+            description="'map': online MAP smoother (re-solves prior + observations, robust loss; default); "
+                        "'ekf': the paper's EKF (iterations=1 is the paper's form)"))
         p('q_length', 0.0, _float('Process-noise variance per update for a, d [m^2]', 0.0, 1.0))
         p('q_angle', 0.0, _float('Process-noise variance per update for alpha, offset [rad^2]', 0.0, 1.0))
         p('gate_probability', 0.999, _float('Chi-square gate probability (0 disables gating)', 0.0, 0.999999))
@@ -116,7 +119,7 @@ class EstimatorNode(Node):
         self.model = load_robot(gp('robot'))
         widths = (gp('width_length'), np.radians(gp('width_angle_deg')))
         x0 = self._initial_guess(gp('initial_guess'), gp('initial_seed'), gp('initial_dh_file'), widths)
-        settings = EstimatorSettings(q_length=gp('q_length'), q_angle=gp('q_angle'),
+        settings = EstimatorSettings(estimator=gp('estimator'), q_length=gp('q_length'), q_angle=gp('q_angle'),
                                      gate_probability=gp('gate_probability'), gate_warmup=gp('gate_warmup'),
                                      iterations=gp('iterations'),
                                      same_config_tol=gp('same_config_tolerance'))
@@ -214,12 +217,10 @@ class EstimatorNode(Node):
             self.last_update_s = a.update_seconds
             if a.outcome == 'invalid':
                 self.get_logger().warning(f'hand pose at {a.stamp:.3f} s rejected as invalid input: {a.message}')
-            elif a.outcome in (Outcome.ACCEPTED.value, Outcome.REJECTED.value):
-                f = self.estimator.ekf
-                if a.outcome == Outcome.REJECTED.value:
-                    self.get_logger().warning(f'outlier rejected at {a.stamp:.3f} s: Mahalanobis distance '
-                                              f'{f.mahalanobis:.2f} > gate {f.gate:.2f} '
-                                              f'({f.n_rejected} rejected so far)')
+            elif a.outcome in (Outcome.ACCEPTED.value, Outcome.OUTLIER.value, Outcome.REJECTED.value):
+                if a.outcome != Outcome.ACCEPTED.value:
+                    self.get_logger().warning(f'{a.outcome} at {a.stamp:.3f} s: {a.message} '
+                                              f'(counters {self.estimator.counters})')
                 if self.checkpoint is not None:
                     self.estimator.save_checkpoint(self.checkpoint)
                 self.publish_estimate()
@@ -229,7 +230,7 @@ class EstimatorNode(Node):
         c = self.estimator.counters
         level = DiagnosticStatus.OK if outcome == 'accepted' else DiagnosticStatus.WARN
         kv = {'outcome': outcome, 'stamp': f'{t:.9f}', 'joints': ' '.join(f'{v:.9f}' for v in q),
-              'mahalanobis': f'{self.estimator.ekf.mahalanobis:.6f}', 'update_s': f'{self.last_update_s:.6f}',
+              'mahalanobis': f'{self.estimator.mahalanobis:.6f}', 'update_s': f'{self.last_update_s:.6f}',
               **{k: str(v) for k, v in c.items()}}
         self.pub_status.publish(DiagnosticStatus(level=level, name='dh_estimator', message=message,
                                                  hardware_id=self.model.name,

@@ -126,7 +126,6 @@ class ObservationPairer:
             outcome = self.estimator.offer(q, pose, R)
         except (ValueError, ekf_mod.InvalidInputError, ekf_mod.FilterError) as exc:
             return Attempt(t, q, 'invalid', str(exc))
-        f = self.estimator.ekf
         message = 'same configuration as the previous attempt' if outcome is Outcome.DUPLICATE \
-            else f'mahalanobis {f.mahalanobis:.3f}'
+            else self.estimator.describe_last()
         return Attempt(t, q, outcome.value, message, time.perf_counter() - t0)

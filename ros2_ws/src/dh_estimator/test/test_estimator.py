@@ -36,20 +36,34 @@ def test_buffer_interpolates_and_detects_rest():
         b.add(2.0, [np.nan, 0.0])
 
 
-def test_one_update_per_configuration(arm):
-    est = _estimator(arm)
+@pytest.mark.parametrize('kind', ['map', 'ekf'])
+def test_one_update_per_configuration(arm, kind):
+    est = _estimator(arm, estimator=kind)
     q = np.mean(arm.calibration_box, axis=1)
     z = arm.forward_kinematics(q)
     assert est.offer(q, z, R) is Outcome.ACCEPTED
-    x = est.ekf.x.copy()
+    x = est.x.copy()
     assert est.offer(q + 1e-5, z, R) is Outcome.DUPLICATE          # same static configuration
-    np.testing.assert_array_equal(est.ekf.x, x)
-    assert est.counters == {'updates': 1, 'rejected': 0, 'duplicates': 1}
+    np.testing.assert_array_equal(est.x, x)
+    assert est.counters == {'updates': 1, 'rejected': 0, 'duplicates': 1, 'outliers': 0, 'changes': 0}
     assert est.offer(q + 0.1, arm.forward_kinematics(q + 0.1), R) is Outcome.ACCEPTED
 
 
+def test_map_flags_a_gross_outlier_but_keeps_going(arm):
+    est = _estimator(arm)
+    qs = sampling.uniform_configs(arm.calibration_box, 12, 4)
+    for q in qs[:10]:
+        assert est.offer(q, arm.forward_kinematics(q), R) is Outcome.ACCEPTED
+    z = arm.forward_kinematics(qs[10])
+    z[:3, 3] += 0.3                                                  # 30 cm off: a wrong detection
+    assert est.offer(qs[10], z, R) is Outcome.OUTLIER
+    assert est.counters['outliers'] == 1
+    assert 'outlier' in est.describe_last()
+    assert est.offer(qs[11], arm.forward_kinematics(qs[11]), R) is Outcome.ACCEPTED
+
+
 def test_rejected_outlier_leaves_state(arm):
-    est = _estimator(arm, gate_probability=0.99, gate_warmup=0, q_length=1e-6, q_angle=1e-6)
+    est = _estimator(arm, estimator='ekf', gate_probability=0.99, gate_warmup=0, q_length=1e-6, q_angle=1e-6)
     q = np.mean(arm.calibration_box, axis=1)
     z = arm.forward_kinematics(q)
     z[:3, 3] += 1.0
@@ -60,7 +74,7 @@ def test_rejected_outlier_leaves_state(arm):
 
 
 def test_gate_waits_for_warmup(arm):
-    est = _estimator(arm, gate_probability=0.99, gate_warmup=1)
+    est = _estimator(arm, estimator='ekf', gate_probability=0.99, gate_warmup=1)
     q = np.mean(arm.calibration_box, axis=1)
     z = arm.forward_kinematics(q)
     z[:3, 3] += 0.5
@@ -71,8 +85,44 @@ def test_gate_waits_for_warmup(arm):
     assert est.offer(q2, z2, np.eye(6) * 1e-8) is Outcome.REJECTED
 
 
-def test_nan_leaves_state(arm):
+def _bad_inputs(arm):
+    q = np.mean(arm.calibration_box, axis=1)
+    z = arm.forward_kinematics(q)
+    nan_pose = z.copy()
+    nan_pose[1, 1] = np.nan
+    beyond = q.copy()
+    beyond[3] = arm.limits[3, 1] + 0.2
+    indefinite = R.copy()
+    indefinite[0, 0] = -1e-5
+    return {
+        'nan pose': (q, nan_pose, R, 'NaN'),
+        'misshaped pose': (q, z[:3], R, '4x4'),
+        'misshaped joints': (q[:5], z, R, 'shape'),
+        'singular R': (q, z, np.zeros((6, 6)), 'R'),
+        'indefinite R': (q, z, indefinite, 'R'),
+        'joints outside the limits': (beyond, arm.forward_kinematics(beyond), R, 'outside its limits'),
+    }
+
+
+@pytest.mark.parametrize('case', ['nan pose', 'misshaped pose', 'misshaped joints', 'singular R',
+                                  'indefinite R', 'joints outside the limits'])
+def test_bad_input_is_a_clear_error_and_changes_nothing(arm, case):
     est = _estimator(arm, q_length=1e-6)
+    q0 = sampling.uniform_configs(arm.calibration_box, 1, 9)[0]
+    est.offer(q0, arm.forward_kinematics(q0), R)
+    x, P, counters = est.x.copy(), est.P.copy(), est.counters
+    q, z, cov, words = _bad_inputs(arm)[case]
+    with pytest.raises(ekf.InvalidInputError, match=words):
+        est.offer(q, z, cov)
+    np.testing.assert_array_equal(est.x, x)
+    np.testing.assert_array_equal(est.P, P)
+    assert est.counters == counters
+    np.testing.assert_array_equal(est.last_config, q0)
+    assert est.map.n_observations == 1
+
+
+def test_nan_leaves_ekf_state(arm):
+    est = _estimator(arm, estimator='ekf', q_length=1e-6)
     q = np.zeros(7)
     z = arm.forward_kinematics(q)
     z[1, 1] = np.nan
@@ -83,18 +133,29 @@ def test_nan_leaves_state(arm):
     assert est.last_config is None
 
 
-def test_checkpoint_resumes_exactly(arm, tmp_path):
-    est = _estimator(arm)
-    for q in sampling.uniform_configs(arm.calibration_box, 5, 1):
+@pytest.mark.parametrize('kind', ['map', 'ekf'])
+def test_checkpoint_resumes_exactly(arm, tmp_path, kind):
+    est = _estimator(arm, estimator=kind)
+    qs = sampling.uniform_configs(arm.calibration_box, 7, 1)
+    for q in qs[:5]:
         est.offer(q, arm.forward_kinematics(q), R)
     path = tmp_path / 'state.npz'
     est.save_checkpoint(path)
-    again = _estimator(arm)
+    again = _estimator(arm, estimator=kind)
     again.load_checkpoint(path)
-    np.testing.assert_array_equal(again.ekf.x, est.ekf.x)
-    np.testing.assert_array_equal(again.ekf.P, est.ekf.P)
+    np.testing.assert_array_equal(again.x, est.x)
+    np.testing.assert_array_equal(again.P, est.P)
     np.testing.assert_array_equal(again.last_config, est.last_config)
     assert again.counters == est.counters
+    for q in qs[5:]:                 # and it goes on exactly as the uninterrupted one
+        assert again.offer(q, arm.forward_kinematics(q), R) is est.offer(q, arm.forward_kinematics(q), R)
+    np.testing.assert_array_equal(again.x, est.x)
+
+
+def test_checkpoint_of_another_estimator_is_refused(arm, tmp_path):
+    _estimator(arm, estimator='ekf').save_checkpoint(tmp_path / 'ekf.npz')
+    with pytest.raises(ValueError, match="'ekf' estimator"):
+        _estimator(arm).load_checkpoint(tmp_path / 'ekf.npz')
 
 
 def test_export_yaml_and_urdf(arm, tmp_path):

@@ -60,7 +60,7 @@ def test_update_then_nan_and_bad_names_leave_state(ros):
     ros.spin_until(lambda: node.estimator.counters['updates'] == 1, 5.0, 'one EKF update')
     ros.spin_until(lambda: len(estimates) >= 2, 5.0, 'estimate after the update')
     np.testing.assert_allclose(msg_to_table(estimates[-1]), node.estimator.dh)
-    x, P = node.estimator.ekf.x.copy(), node.estimator.ekf.P.copy()
+    x, P = node.estimator.x.copy(), node.estimator.P.copy()
 
     # The same static configuration again: not new evidence.
     hp.publish(_hand_pose(0.95, ARM.forward_kinematics(q)))
@@ -75,8 +75,8 @@ def test_update_then_nan_and_bad_names_leave_state(ros):
     js.publish(_joint_state(2.2, np.full(7, np.nan)))
     ros.spin_until(lambda: node.estimator.counters['duplicates'] == 1, 5.0, 'duplicate counted')
     ros.spin_for(0.5)
-    np.testing.assert_array_equal(node.estimator.ekf.x, x)
-    np.testing.assert_array_equal(node.estimator.ekf.P, P)
+    np.testing.assert_array_equal(node.estimator.x, x)
+    np.testing.assert_array_equal(node.estimator.P, P)
     assert node.estimator.counters['updates'] == 1
     assert node.pairer.buffer.latest[0] < 2.05                      # bad joint states never entered
 
@@ -92,8 +92,8 @@ def test_restart_from_checkpoint_is_identical(ros, tmp_path):
     restarted = ros.add(EstimatorNode(context=ros.context, parameter_overrides=[
         Parameter('initial_seed', value=99), Parameter('checkpoint_path', value=str(ckpt)),
         Parameter('export_on_shutdown', value=False), Parameter('require_command', value=False)]))
-    np.testing.assert_array_equal(restarted.estimator.ekf.x, node.estimator.ekf.x)
-    np.testing.assert_array_equal(restarted.estimator.ekf.P, node.estimator.ekf.P)
+    np.testing.assert_array_equal(restarted.estimator.x, node.estimator.x)
+    np.testing.assert_array_equal(restarted.estimator.P, node.estimator.P)
     assert restarted.estimator.counters == node.estimator.counters
 
 

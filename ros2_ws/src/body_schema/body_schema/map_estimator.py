@@ -1,0 +1,512 @@
+"""Online maximum-a-posteriori (MAP) estimation of the DH parameters (pure Python, no rclpy).
+
+The EKF of the paper linearises each observation once, about the estimate of the moment, and
+freezes that linearisation into ``P``. From the paper's wide initial spread (46 mm, 54 deg) the
+first updates are linearised far from the truth, so ``P`` ends up claiming more certainty than the
+data support and later, good observations look like outliers. :class:`MapEstimator` instead keeps
+the observations and, after each new one, re-solves the whole problem
+
+    x* = argmin  ||x - x_p||^2_{P_p^-1}  +  sum_i rho( ||z_i (-) h(x, q_i)||^2_{R_i^-1} )
+
+by nonlinear least squares (``scipy.optimize.least_squares``, trust-region reflective),
+warm-started from the previous solution, so every observation is always linearised at the best
+current estimate. The posterior covariance is the inverse Gauss-Newton information at the
+solution. ``rho`` is a robust loss on the whitened residual (Huber by default): it replaces the
+EKF's hard chi-square gate. An observation whose whitened residual at the solution stays beyond
+the ``outlier_probability`` chi-square bound is reported as an outlier (counted, in the update
+report) but kept: if a later solution explains it, it stops being one.
+
+Adaptation to a body that changes (wear, a bent link, a tool) uses the paper's own process
+model ``x_{k+1} = x_k + w_k``:
+
+* a random walk ``Q = diag(q_length, q_length, q_angle, q_angle)`` per observation: every stored
+  observation ``i`` and the prior carry the drift accumulated since they were taken,
+  ``R_i <- R_i + H_i D_i H_i^T`` and ``P_p <- P_p + D_p``, so old evidence weighs less;
+* change detection on the innovations: when the normalised innovations squared (NIS) of the last
+  ``change_window`` observations exceed their ``change_probability`` chi-square bound together,
+  a jump ``diag(jump_length^2, jump_length^2, jump_angle^2, jump_angle^2)`` is added to every
+  stored observation's drift and to the prior, which lets the estimate move to the new body
+  quickly at no price on a body that does not change (the test rarely fires on consistent data);
+* an optional sliding window: beyond ``window`` observations the oldest is folded into the
+  Gaussian prior (linearised at the current solution), bounding the cost of an update.
+
+``x`` is the flattened DH table, row-major ``(a_0, d_0, alpha_0, offset_0, a_1, ...)``; the
+observation is a hand pose compared on SO(3): ``(p_z - p_h, log(R_z R_h^T))``, the residual of
+:class:`body_schema.ekf.HandPoseModel`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.optimize import least_squares
+from scipy.stats import chi2
+
+from . import kinematics
+from .ekf import FilterError, InvalidInputError
+
+__all__ = ['MapSettings', 'MapUpdate', 'MapEstimator', 'LOSSES']
+
+#: Robust losses of ``scipy.optimize.least_squares`` accepted by :class:`MapSettings`.
+LOSSES = ('linear', 'huber', 'soft_l1', 'cauchy', 'arctan')
+
+
+@dataclass(frozen=True)
+class MapSettings:
+    """Settings of :class:`MapEstimator`.
+
+    Attributes
+    ----------
+    loss : str
+        Robust loss on the whitened residual components (one of :data:`LOSSES`).
+    loss_scale : float
+        Whitened residual (in standard deviations) where the robust loss departs from the square.
+    outlier_probability : float
+        Chi-square probability (6 dof) beyond which an observation's whitened residual at the
+        solution is reported as an outlier.
+    max_nfev : int
+        Residual evaluations per re-solve (the warm start usually needs 2-4).
+    window : int
+        Observations kept in the nonlinear problem; older ones are folded into the prior.
+        0 keeps all.
+    q_length, q_angle : float
+        Random-walk variance per observation for lengths [m^2] and angles [rad^2].
+    change_probability : float
+        Chi-square probability of the change test on the last ``change_window`` innovations;
+        0 disables change detection.
+    change_window : int
+        Consecutive observations whose NIS are tested together.
+    jump_length, jump_angle : float
+        Standard deviation of the jump added when a change is detected [m], [rad].
+    """
+
+    loss: str = 'huber'
+    loss_scale: float = 3.0
+    outlier_probability: float = 0.999
+    max_nfev: int = 30
+    window: int = 0
+    q_length: float = 0.0
+    q_angle: float = 0.0
+    change_probability: float = 0.0
+    change_window: int = 3
+    jump_length: float = 0.01
+    jump_angle: float = float(np.radians(3.0))
+
+    def __post_init__(self) -> None:
+        if self.loss not in LOSSES:
+            raise ValueError(f'loss must be one of {LOSSES}, got {self.loss!r}')
+        for name in ('loss_scale', 'jump_length', 'jump_angle'):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise ValueError(f'{name} must be finite and > 0, got {v}')
+        for name in ('q_length', 'q_angle'):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0):
+                raise ValueError(f'{name} must be finite and >= 0, got {v}')
+        if not 0.0 < self.outlier_probability < 1.0:
+            raise ValueError(f'outlier_probability must be in (0, 1), got {self.outlier_probability}')
+        if not 0.0 <= self.change_probability < 1.0:
+            raise ValueError(f'change_probability must be in [0, 1), got {self.change_probability}')
+        if self.max_nfev < 1:
+            raise ValueError(f'max_nfev must be >= 1, got {self.max_nfev}')
+        if self.window < 0 or (0 < self.window < 2):
+            raise ValueError(f'window must be 0 (all) or >= 2, got {self.window}')
+        if self.change_window < 1:
+            raise ValueError(f'change_window must be >= 1, got {self.change_window}')
+
+
+@dataclass(frozen=True)
+class MapUpdate:
+    """What one :meth:`MapEstimator.update` did.
+
+    Attributes
+    ----------
+    innovation : ndarray, shape (6,)
+        ``z (-) h(x, q)`` at the estimate before the update.
+    S : ndarray, shape (6, 6)
+        Its predicted covariance ``H P H^T + R``.
+    nis : float
+        ``innovation^T S^-1 innovation`` (chi-square with 6 dof when consistent).
+    mahalanobis : float
+        ``sqrt(nis)``.
+    residual_chi2 : float
+        The new observation's whitened residual squared at the new solution.
+    outlier : bool
+        ``residual_chi2`` beyond the ``outlier_probability`` bound.
+    change_detected : bool
+        The change test fired at this observation (a jump was added).
+    nfev : int
+        Residual evaluations of the re-solve.
+    """
+
+    innovation: NDArray[np.float64]
+    S: NDArray[np.float64]
+    nis: float
+    mahalanobis: float
+    residual_chi2: float
+    outlier: bool
+    change_detected: bool
+    nfev: int
+
+
+def _inv_chol(m: NDArray[np.float64], name: str) -> NDArray[np.float64]:
+    """``L^-1`` with ``m = L L^T``; whitening by it makes residuals unit-covariance."""
+    try:
+        c = np.linalg.cholesky(m)
+    except np.linalg.LinAlgError as exc:
+        raise InvalidInputError(f'{name} is not symmetric positive definite') from exc
+    return np.linalg.inv(c)
+
+
+def pose_residuals(z: NDArray[np.float64], hand: NDArray[np.float64]) -> NDArray[np.float64]:
+    """SO(3)-aware residuals ``(p_z - p_h, log(R_z R_h^T))`` of N pose pairs.
+
+    Parameters
+    ----------
+    z, hand : ndarray, shape (N, 4, 4)
+
+    Returns
+    -------
+    ndarray, shape (N, 6)
+    """
+    rot = kinematics.rotation_vector_error(z[:, :3, :3], hand[:, :3, :3])
+    return np.concatenate([z[:, :3, 3] - hand[:, :3, 3], np.reshape(rot, (-1, 3))], axis=1)
+
+
+class MapEstimator:
+    """Online MAP estimate of a DH table from hand-pose observations.
+
+    Parameters
+    ----------
+    base : array_like, shape (4, 4)
+        Root to the frame before the first estimated link.
+    x0 : array_like, shape (L, 4) or (4 L,)
+        Prior mean (the initial guess).
+    P0 : array_like, shape (4 L, 4 L)
+        Prior covariance (symmetric positive definite).
+    settings : MapSettings
+    limits : array_like, shape (L, 2), optional
+        Joint limits [rad]; observations outside them are refused.
+
+    Attributes
+    ----------
+    x : ndarray, shape (4 L,)
+        Current MAP estimate.
+    P : ndarray, shape (4 L, 4 L)
+        Its covariance (inverse Gauss-Newton information at ``x``).
+    last : MapUpdate or None
+        Report of the last update.
+    n_updates, n_changes, n_marginalised : int
+        Observations used, changes detected, observations folded into the prior.
+    """
+
+    def __init__(self, base: ArrayLike, x0: ArrayLike, P0: ArrayLike,  # noqa: N803
+                 settings: MapSettings = MapSettings(), limits: ArrayLike | None = None) -> None:
+        self.base = np.asarray(base, dtype=float)
+        x0 = np.array(x0, dtype=float).ravel()
+        if x0.size % kinematics.PARAMS_PER_LINK or not np.all(np.isfinite(x0)):
+            raise InvalidInputError(f'x0 must hold 4 finite parameters per link, got {x0.size} values')
+        self.n = x0.size
+        self.n_links = self.n // kinematics.PARAMS_PER_LINK
+        P0 = np.array(P0, dtype=float)  # noqa: N806
+        if P0.shape != (self.n, self.n) or not np.all(np.isfinite(P0)) or \
+                np.max(np.abs(P0 - P0.T)) > 1e-9 * np.max(np.abs(P0)):
+            raise InvalidInputError(f'P0 must be a finite symmetric ({self.n}, {self.n}) matrix, got {P0.shape}')
+        _inv_chol(P0, 'P0')
+        self.settings = settings
+        self.limits = None if limits is None else np.asarray(limits, dtype=float)
+        per_link = np.array([settings.q_length, settings.q_length, settings.q_angle, settings.q_angle])
+        self._q = np.tile(per_link, self.n_links)
+        jump = np.array([settings.jump_length, settings.jump_length, settings.jump_angle, settings.jump_angle])
+        self._jump = np.tile(jump ** 2, self.n_links)
+        self._outlier_bound = float(chi2.ppf(settings.outlier_probability, 6))
+        self._change_bound = float(chi2.ppf(settings.change_probability, 6 * settings.change_window)) \
+            if settings.change_probability > 0 else np.inf
+        # The problem: prior (x_p, P_p) and the observations in the window.
+        self.x_p = x0.copy()
+        self.P_p = P0.copy()
+        self.qs = np.zeros((0, self.n_links))
+        self.zs = np.zeros((0, 4, 4))
+        self.Rs = np.zeros((0, 6, 6))
+        self.drift = np.zeros((0, self.n))         # diagonal drift accumulated since each was taken
+        self.x = x0.copy()
+        self.P = P0.copy()
+        self.last: MapUpdate | None = None
+        self.n_updates = 0
+        self.n_changes = 0
+        self.n_marginalised = 0
+        self._recent_nis: list[float] = []
+
+    # ------------------------------------------------------------------------------------------
+    # Model
+
+    def table(self, x: ArrayLike | None = None) -> NDArray[np.float64]:
+        """``x`` (default: the estimate) as a DH table, shape (L, 4)."""
+        return np.reshape(self.x if x is None else x, (self.n_links, kinematics.PARAMS_PER_LINK))
+
+    def _frames(self, x: NDArray[np.float64], qs: NDArray[np.float64]) -> NDArray[np.float64]:
+        return kinematics.chain_frames(self.base, self.table(x), qs)
+
+    def predict(self, q: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Predicted hand pose (4, 4) at joints ``q`` (L,) and its Jacobian ``H`` (6, 4 L)."""
+        frames = self._frames(self.x, np.asarray(q, dtype=float)[None])
+        return frames[0, -1], kinematics.pose_jacobian_from_frames(frames)[0]
+
+    @property
+    def n_observations(self) -> int:
+        """Observations in the nonlinear problem (the window)."""
+        return self.qs.shape[0]
+
+    # ------------------------------------------------------------------------------------------
+    # Update
+
+    def _check(self, q: ArrayLike, pose: ArrayLike, R: ArrayLike) -> tuple[NDArray, NDArray, NDArray]:  # noqa: N803
+        q = np.array(q, dtype=float)
+        pose = np.array(pose, dtype=float)
+        R = np.array(R, dtype=float)  # noqa: N806
+        if q.shape != (self.n_links,):
+            raise InvalidInputError(f'joint configuration must have shape ({self.n_links},), got {q.shape}')
+        if pose.shape != (4, 4):
+            raise InvalidInputError(f'pose observation must be a 4x4 transform, got {pose.shape}')
+        if R.shape != (6, 6):
+            raise InvalidInputError(f'R must have shape (6, 6), got {R.shape}')
+        for name, a in (('joint configuration', q), ('pose observation', pose), ('R', R)):
+            if not np.all(np.isfinite(a)):
+                raise InvalidInputError(f'{name} contains NaN or inf: {np.array2string(a, threshold=12)}')
+        if np.max(np.abs(R - R.T)) > 1e-8 * np.max(np.abs(R)) + 1e-15:
+            raise InvalidInputError('R is not symmetric')
+        if np.linalg.eigvalsh(R)[0] <= 0:
+            raise InvalidInputError(f'R is not positive definite (eigenvalues {np.linalg.eigvalsh(R)})')
+        rot = pose[:3, :3]
+        if np.max(np.abs(rot @ rot.T - np.eye(3))) > 1e-6 or abs(np.linalg.det(rot) - 1.0) > 1e-6:
+            raise InvalidInputError('pose observation has no proper rotation block')
+        if self.limits is not None:
+            out = (q < self.limits[:, 0] - 1e-9) | (q > self.limits[:, 1] + 1e-9)
+            if np.any(out):
+                j = int(np.argmax(out))
+                raise InvalidInputError(f'joint {j} at {np.degrees(q[j]):.3f} deg is outside its limits '
+                                        f'[{np.degrees(self.limits[j, 0]):.3f}, {np.degrees(self.limits[j, 1]):.3f}] deg')
+        return q, pose, R
+
+    def innovation(self, q: ArrayLike, pose: ArrayLike, R: ArrayLike) -> tuple[NDArray, NDArray]:  # noqa: N803
+        """Innovation (6,) and its covariance ``S`` (6, 6) of an observation, without using it."""
+        q, pose, R = self._check(q, pose, R)  # noqa: N806
+        hand, H = self.predict(q)  # noqa: N806
+        y = pose_residuals(pose[None], hand[None])[0]
+        return y, H @ self.P @ H.T + R
+
+    def update(self, q: ArrayLike, pose: ArrayLike, R: ArrayLike) -> MapUpdate:  # noqa: N803
+        """Add one hand-pose observation and re-solve.
+
+        Parameters
+        ----------
+        q : array_like, shape (L,)
+            Joint configuration [rad].
+        pose : array_like, shape (4, 4)
+            Observed hand pose in the root frame.
+        R : array_like, shape (6, 6)
+            Its covariance (position [m], rotation vector [rad]).
+
+        Raises
+        ------
+        InvalidInputError
+            On NaN, mis-shaped, non-SPD or out-of-limits input; nothing changes.
+        FilterError
+            If the re-solve fails (nothing changes).
+        """
+        q, pose, R = self._check(q, pose, R)  # noqa: N806
+        saved = self._state()
+        try:
+            return self._update(q, pose, R)
+        except Exception:
+            self._restore(saved)
+            raise
+
+    def _update(self, q: NDArray, pose: NDArray, R: NDArray) -> MapUpdate:  # noqa: N803
+        s = self.settings
+        # Random walk between observations: old evidence and the prior age by Q.
+        if np.any(self._q > 0):
+            self.drift += self._q
+            self.P_p = self.P_p + np.diag(self._q)
+            self.P = self.P + np.diag(self._q)
+        hand, H = self.predict(q)  # noqa: N806
+        y = pose_residuals(pose[None], hand[None])[0]
+        S = H @ self.P @ H.T + R  # noqa: N806
+        nis = float(y @ np.linalg.solve(S, y))
+        change = False
+        self._recent_nis = (self._recent_nis + [nis])[-s.change_window:]
+        if len(self._recent_nis) == s.change_window and sum(self._recent_nis) > self._change_bound:
+            # The body changed: everything known so far (prior and stored observations) may be
+            # off by a jump. The newest change_window - 1 observations are part of the evidence
+            # of the change, so they are not aged.
+            keep = s.change_window - 1
+            old = max(0, self.n_observations - keep)
+            self.drift[:old] += self._jump
+            self.P_p = self.P_p + np.diag(self._jump)
+            self.n_changes += 1
+            self._recent_nis = []
+            change = True
+        self.qs = np.vstack([self.qs, q[None]])
+        self.zs = np.concatenate([self.zs, pose[None]])
+        self.Rs = np.concatenate([self.Rs, R[None]])
+        self.drift = np.vstack([self.drift, np.zeros((1, self.n))])
+        if s.window and self.n_observations > s.window:
+            self._marginalise_oldest()
+        nfev = self._solve()
+        r_new = self._whitened(self.x)[-1]
+        chi = float(r_new @ r_new)
+        self.n_updates += 1
+        self.last = MapUpdate(y, S, nis, float(np.sqrt(nis)), chi, chi > self._outlier_bound, change, nfev)
+        return self.last
+
+    def solve_batch(self, qs: ArrayLike, poses: ArrayLike, Rs: ArrayLike, max_nfev: int = 200) -> int:  # noqa: N803
+        """Add many observations and solve once (the batch MAP of prior + all of them).
+
+        Parameters
+        ----------
+        qs : array_like, shape (N, L)
+        poses : array_like, shape (N, 4, 4)
+        Rs : array_like, shape (N, 6, 6)
+        max_nfev : int
+            Residual evaluations allowed for the solve (a cold start needs more than an update).
+
+        Returns
+        -------
+        int
+            Residual evaluations used.
+        """
+        checked = [self._check(q, z, r) for q, z, r in zip(qs, poses, Rs)]
+        if not checked:
+            return 0
+        self.qs = np.vstack([self.qs] + [c[0][None] for c in checked])
+        self.zs = np.concatenate([self.zs] + [c[1][None] for c in checked])
+        self.Rs = np.concatenate([self.Rs] + [c[2][None] for c in checked])
+        self.drift = np.vstack([self.drift, np.zeros((len(checked), self.n))])
+        self.n_updates += len(checked)
+        return self._solve(max_nfev)
+
+    # ------------------------------------------------------------------------------------------
+    # The nonlinear least-squares problem
+
+    def _effective_whitening(self) -> NDArray[np.float64]:
+        """``L_i^-1`` (N, 6, 6) of ``R_i + H_i D_i H_i^T``, with ``H_i`` at the warm start."""
+        R = self.Rs  # noqa: N806
+        if np.any(self.drift > 0):
+            J = kinematics.pose_jacobian_from_frames(self._frames(self.x, self.qs))  # noqa: N806
+            R = R + np.einsum('nij,nj,nkj->nik', J, self.drift, J)  # noqa: N806
+        c = np.linalg.cholesky(R)
+        return np.linalg.inv(c)
+
+    def _whitened(self, x: NDArray[np.float64], w: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
+        """Whitened observation residuals at ``x``, shape (N, 6)."""
+        w = self._effective_whitening() if w is None else w
+        hand = self._frames(x, self.qs)[:, -1]
+        return np.einsum('nij,nj->ni', w, pose_residuals(self.zs, hand))
+
+    def _solve(self, max_nfev: int | None = None) -> int:
+        w = self._effective_whitening()
+        lp = _inv_chol(self.P_p, 'prior covariance')
+        base, qs, zs, x_p = self.base, self.qs, self.zs, self.x_p
+
+        def fun(x: NDArray[np.float64]) -> NDArray[np.float64]:
+            hand = kinematics.chain_frames(base, self.table(x), qs)[:, -1]
+            r = np.einsum('nij,nj->ni', w, pose_residuals(zs, hand))
+            return np.concatenate([lp @ (x - x_p), r.ravel()])
+
+        def jac(x: NDArray[np.float64]) -> NDArray[np.float64]:
+            J = kinematics.pose_jacobian_from_frames(kinematics.chain_frames(base, self.table(x), qs))  # noqa: N806
+            # d(z (-) h)/dx = -H (first order on SO(3), as in the EKF).
+            return np.vstack([lp, -np.einsum('nij,njk->nik', w, J).reshape(-1, self.n)])
+
+        s = self.settings
+        try:
+            res = least_squares(fun, self.x, jac=jac, method='trf', loss=s.loss, f_scale=s.loss_scale,
+                                max_nfev=max_nfev or s.max_nfev, x_scale='jac')
+        except (ValueError, np.linalg.LinAlgError) as exc:
+            raise FilterError(f'MAP re-solve failed: {exc}') from exc
+        if not np.all(np.isfinite(res.x)):
+            raise FilterError('MAP re-solve produced a non-finite estimate')
+        info = res.jac.T @ res.jac
+        try:
+            c = np.linalg.cholesky(info)
+        except np.linalg.LinAlgError as exc:
+            raise FilterError('information matrix at the solution is not positive definite') from exc
+        ci = np.linalg.inv(c)
+        self.x = res.x
+        self.P = ci.T @ ci
+        return int(res.nfev)
+
+    def _marginalise_oldest(self) -> None:
+        """Fold the oldest observation into the Gaussian prior, linearised at the estimate.
+
+        An observation that is an outlier at the estimate is dropped instead, so a bad sample
+        never becomes part of the prior.
+        """
+        w = self._effective_whitening()[0]
+        frames = self._frames(self.x, self.qs[:1])
+        r = w @ pose_residuals(self.zs[:1], frames[:, -1])[0]
+        if float(r @ r) <= self._outlier_bound:
+            J = w @ kinematics.pose_jacobian_from_frames(frames)[0]  # noqa: N806
+            lam = np.linalg.inv(self.P_p)
+            info = lam + J.T @ J
+            # r(x) ~ r - J (x - x_hat): the folded prior keeps the observation's pull at x_hat.
+            rhs = lam @ self.x_p + J.T @ (r + J @ self.x)
+            self.P_p = np.linalg.inv(info)
+            self.P_p = 0.5 * (self.P_p + self.P_p.T)
+            self.x_p = self.P_p @ rhs
+        self.qs, self.zs, self.Rs, self.drift = self.qs[1:], self.zs[1:], self.Rs[1:], self.drift[1:]
+        self.n_marginalised += 1
+
+    # ------------------------------------------------------------------------------------------
+    # Diagnostics
+
+    def residual_chi2(self) -> NDArray[np.float64]:
+        """Whitened residual squared of each stored observation at the estimate, shape (N,)."""
+        if self.n_observations == 0:
+            return np.zeros(0)
+        r = self._whitened(self.x)
+        return np.einsum('ni,ni->n', r, r)
+
+    @property
+    def n_outliers(self) -> int:
+        """Stored observations beyond the outlier bound at the current estimate."""
+        return int(np.sum(self.residual_chi2() > self._outlier_bound))
+
+    # ------------------------------------------------------------------------------------------
+    # State (checkpoint / resume)
+
+    _ARRAYS = ('x', 'P', 'x_p', 'P_p', 'qs', 'zs', 'Rs', 'drift')
+    _COUNTS = ('n_updates', 'n_changes', 'n_marginalised')
+
+    def _state(self) -> dict[str, object]:
+        d: dict[str, object] = {k: np.copy(getattr(self, k)) for k in self._ARRAYS}
+        d.update({k: getattr(self, k) for k in self._COUNTS})
+        d['recent_nis'] = list(self._recent_nis)
+        d['last'] = self.last
+        return d
+
+    def _restore(self, d: dict[str, object]) -> None:
+        for k in self._ARRAYS + self._COUNTS:
+            setattr(self, k, d[k])
+        self._recent_nis = list(d['recent_nis'])  # type: ignore[arg-type]
+        self.last = d['last']  # type: ignore[assignment]
+
+    def state_dict(self) -> dict[str, NDArray]:
+        """Arrays that restore this estimator exactly (for ``numpy.savez``)."""
+        d = {f'map_{k}': np.asarray(getattr(self, k)) for k in self._ARRAYS + self._COUNTS}
+        d['map_recent_nis'] = np.asarray(self._recent_nis, dtype=float)
+        return d
+
+    def load_state_dict(self, d: dict[str, NDArray]) -> None:
+        """Restore what :meth:`state_dict` wrote; shapes must match this estimator."""
+        for k in ('x', 'x_p'):
+            if d[f'map_{k}'].shape != (self.n,):
+                raise ValueError(f'state holds {d[f"map_{k}"].size} parameters, expected {self.n}')
+        for k in self._ARRAYS:
+            setattr(self, k, np.array(d[f'map_{k}'], dtype=float))
+        for k in self._COUNTS:
+            setattr(self, k, int(d[f'map_{k}']))
+        self._recent_nis = [float(v) for v in d['map_recent_nis']]
+        self.last = None
+

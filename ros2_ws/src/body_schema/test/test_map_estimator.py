@@ -1,0 +1,142 @@
+"""The online MAP estimator: accuracy against the batch solution, consistency, robustness,
+adaptation to a changing body, the sliding window, bad input, state round trip."""
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+import body_schema
+from body_schema import ekf, sampling
+from body_schema.map_estimator import MapEstimator, MapSettings
+from body_schema.metrics import PoseErrorEvaluator
+from body_schema.noise import PoseDependentNoise
+from body_schema.synthetic import SyntheticRun
+
+
+@pytest.fixture(scope='module')
+def arm():
+    return body_schema.load_robot()
+
+
+def _true(arm, seed):
+    return sampling.perturb_dh(arm.dh, 1000 + seed, 0.004, np.radians(2.0))
+
+
+def _run(arm, seed, n, settings=MapSettings(), changes=None):
+    true = _true(arm, seed)
+    obs = SyntheticRun(arm, true, PoseDependentNoise(), seed, changes or {})(n)
+    est = MapEstimator(arm.base, sampling.perturb_dh(arm.dh, seed), sampling.initial_covariance(7),
+                       settings, limits=arm.limits)
+    nis = []
+    for o in obs:
+        nis.append(est.update(o.q, o.pose, o.R).nis)
+    return true, obs, est, np.array(nis)
+
+
+def test_online_equals_batch_and_beats_ekf(arm):
+    """Re-solving after each observation ends where one batch solve of the same data ends,
+    and well below the paper's EKF on the same data."""
+    true, obs, est, _ = _run(arm, 0, 40)
+    batch = MapEstimator(arm.base, sampling.perturb_dh(arm.dh, 0), sampling.initial_covariance(7))
+    batch.solve_batch([o.q for o in obs], [o.pose for o in obs], [o.R for o in obs])
+    ev = PoseErrorEvaluator(arm.base, true, arm.calibration_box, n=300)
+    assert ev(est.x).position_mm == pytest.approx(ev(batch.x).position_mm, rel=0.05)
+    f = ekf.ExtendedKalmanFilter(sampling.perturb_dh(arm.dh, 0).ravel(), sampling.initial_covariance(7))
+    model = ekf.HandPoseModel(arm.base, 7)
+    for o in obs:
+        model.update(f, o.q, o.pose, o.R)
+    assert ev(est.x).position_mm < 0.5 * ev(f.x).position_mm
+    assert ev(est.x).position_mm < 1.5
+
+
+def test_consistency_nees_and_nis(arm):
+    """Over seeded runs with honest noise, NEES and NIS match their chi-square laws."""
+    runs = [_run(arm, seed, 30) for seed in range(8)]
+    nees = [ekf.nees(t.ravel(), e.x, e.P) for t, _, e, _ in runs]
+    n = len(nees)
+    lo, hi = chi2.ppf(0.005, 28 * n) / n, chi2.ppf(0.995, 28 * n) / n
+    assert lo < np.mean(nees) < hi
+    nis = np.concatenate([s[10:] for *_, s in runs])
+    assert abs(np.mean(nis) / 6.0 - 1.0) < 0.15
+    assert sum(e.n_outliers for _, _, e, _ in runs) <= 1
+
+
+def test_outlier_is_flagged_and_does_not_spoil_the_estimate(arm):
+    true, obs, est, _ = _run(arm, 1, 25)
+    ev = PoseErrorEvaluator(arm.base, true, arm.calibration_box, n=300)
+    before = ev(est.x).position_mm
+    q = obs[3].q
+    z = arm.with_dh(true).forward_kinematics(q)
+    z[:3, 3] += 0.15                                   # a 15 cm wrong detection
+    u = est.update(q + 1e-3, z, obs[3].R)
+    assert u.outlier and u.residual_chi2 > chi2.ppf(0.999, 6)
+    assert est.n_outliers == 1
+    assert ev(est.x).position_mm < before + 1.0        # the robust loss keeps its pull bounded
+
+
+def test_change_detection_follows_a_changed_body_and_stays_quiet_otherwise(arm):
+    changed = _true(arm, 2).copy()
+    changed[4, 1] += 0.010                             # forearm 10 mm longer
+    changed[2, 3] += np.radians(3.0)                   # shoulder yaw offset +3 deg
+    settings = MapSettings(change_probability=0.9999)
+    true, obs, est, _ = _run(arm, 2, 60, settings, {30: changed})
+    assert est.n_changes >= 1
+    ev = PoseErrorEvaluator(arm.base, changed, arm.calibration_box, n=300)
+    assert ev(est.x).position_mm < 2.0
+    without = _run(arm, 2, 60, MapSettings(), {30: changed})[2]
+    assert ev(without.x).position_mm > 2 * ev(est.x).position_mm
+    quiet = _run(arm, 3, 60, settings)[2]
+    assert quiet.n_changes == 0
+
+
+def test_window_folds_old_observations_into_the_prior(arm):
+    true, obs, full, _ = _run(arm, 4, 30)
+    windowed = _run(arm, 4, 30, MapSettings(window=10))[2]
+    assert windowed.n_observations == 10 and windowed.n_marginalised == 20
+    ev = PoseErrorEvaluator(arm.base, true, arm.calibration_box, n=300)
+    assert ev(windowed.x).position_mm < 1.3 * ev(full.x).position_mm + 0.1
+    # Marginalisation keeps the information: the covariances agree closely.
+    np.testing.assert_allclose(np.sqrt(np.diag(windowed.P)), np.sqrt(np.diag(full.P)), rtol=0.2)
+
+
+@pytest.mark.parametrize('bad', ['nan', 'shape', 'singular', 'indefinite', 'limits', 'rotation'])
+def test_bad_input_raises_and_changes_nothing(arm, bad):
+    _, obs, est, _ = _run(arm, 5, 3)
+    before = est.state_dict()
+    q, z, R = obs[0].q.copy(), obs[0].pose.copy(), obs[0].R.copy()  # noqa: N806
+    if bad == 'nan':
+        z[0, 3] = np.nan
+    elif bad == 'shape':
+        R = R[:5, :5]  # noqa: N806
+    elif bad == 'singular':
+        R = np.zeros((6, 6))  # noqa: N806
+    elif bad == 'indefinite':
+        R = np.diag([1e-6, -1e-6, 1e-6, 1e-4, 1e-4, 1e-4])  # noqa: N806
+    elif bad == 'limits':
+        q[0] = arm.limits[0, 0] - 0.1
+    else:
+        z[:3, :3] *= 2.0
+    with pytest.raises(ekf.InvalidInputError):
+        est.update(q, z, R)
+    after = est.state_dict()
+    for k in before:
+        np.testing.assert_array_equal(after[k], before[k])
+
+
+def test_state_dict_round_trip_continues_identically(arm):
+    _, obs, est, _ = _run(arm, 6, 8)
+    again = MapEstimator(arm.base, np.zeros(28), np.eye(28))
+    again.load_state_dict(est.state_dict())
+    extra = SyntheticRun(arm, _true(arm, 6), PoseDependentNoise(), 99)(2)
+    for o in extra:
+        est.update(o.q, o.pose, o.R)
+        again.update(o.q, o.pose, o.R)
+    np.testing.assert_array_equal(again.x, est.x)
+    np.testing.assert_array_equal(again.P, est.P)
+
+
+@pytest.mark.parametrize('kw, words', [({'loss': 'l2'}, 'loss'), ({'window': 1}, 'window'),
+                                       ({'q_length': -1.0}, 'q_length'),
+                                       ({'change_probability': 1.0}, 'change_probability')])
+def test_settings_name_the_bad_value(kw, words):
+    with pytest.raises(ValueError, match=words):
+        MapSettings(**kw)

@@ -20,8 +20,8 @@ from numpy.typing import ArrayLike, NDArray
 from . import kinematics
 from .sampling import uniform_configs
 
-__all__ = ['orientation_errors_deg', 'PoseErrors', 'PoseErrorEvaluator', 'accumulated_movement_deg',
-           'discarded_samples', 'EVAL_CONFIGS', 'EVAL_SEED']
+__all__ = ['orientation_errors_deg', 'PoseErrors', 'PoseErrorEvaluator', 'expected_pose_errors',
+           'accumulated_movement_deg', 'discarded_samples', 'EVAL_CONFIGS', 'EVAL_SEED']
 
 #: The paper's number of evaluation configurations and our fixed seed for them.
 EVAL_CONFIGS = 1000
@@ -85,6 +85,47 @@ class PoseErrorEvaluator:
         pos = np.linalg.norm(est[:, :3, 3] - self._true[:, :3, 3], axis=1)
         rot = orientation_errors_deg(self._true[:, :3, :3], est[:, :3, :3])
         return PoseErrors(float(pos.mean()), float(rot.mean()))
+
+
+def expected_pose_errors(base: ArrayLike, dh: ArrayLike, P: ArrayLike, box: ArrayLike,  # noqa: N803
+                         n: int = EVAL_CONFIGS, draws: int = 256, seed: int = EVAL_SEED) -> PoseErrors:
+    """The average hand errors a parameter covariance implies: the information limit of a run.
+
+    If the true table were distributed as ``N(dh, P)``, the paper's two metrics (mean position
+    error and mean geodesic orientation error over ``n`` configurations of the box) would have
+    these expectations, to first order: the hand error at configuration ``i`` is ``J_i dx`` with
+    ``J_i`` the pose Jacobian w.r.t. the DH parameters at ``dh``. Computed by drawing ``dx``.
+
+    Parameters
+    ----------
+    base : array_like, shape (4, 4)
+    dh : array_like, shape (L, 4) or (4 L,)
+        The estimate.
+    P : array_like, shape (4 L, 4 L)
+        Its covariance.
+    box : array_like, shape (L, 2)
+        The configurations of :class:`PoseErrorEvaluator` (same ``n`` and ``seed``).
+    draws : int
+        Parameter draws per configuration.
+
+    Returns
+    -------
+    PoseErrors
+    """
+    P = np.asarray(P, dtype=float)  # noqa: N806
+    dh = np.asarray(dh, dtype=float)
+    dh = dh.reshape(-1, kinematics.PARAMS_PER_LINK)
+    if P.shape != (dh.size, dh.size) or not np.all(np.isfinite(P)):
+        raise ValueError(f'P must be a finite ({dh.size}, {dh.size}) matrix, got shape {P.shape}')
+    rng = np.random.default_rng(seed)
+    configs = uniform_configs(box, n, rng)
+    jac = kinematics.pose_jacobian_dh(base, dh, configs)                     # (n, 6, 4L)
+    # Symmetric square root (P may be only semi-definite in directions nothing observed).
+    w, v = np.linalg.eigh(0.5 * (P + P.T))
+    dx = rng.standard_normal((draws, dh.size)) @ (v * np.sqrt(np.clip(w, 0.0, None))).T
+    err = np.einsum('nij,dj->ndi', jac, dx)                                 # (n, draws, 6)
+    return PoseErrors(float(np.linalg.norm(err[..., :3], axis=-1).mean()),
+                      float(np.degrees(np.linalg.norm(err[..., 3:], axis=-1)).mean()))
 
 
 def accumulated_movement_deg(thetas: ArrayLike) -> NDArray[np.float64]:

@@ -140,3 +140,17 @@ def test_state_dict_round_trip_continues_identically(arm):
 def test_settings_name_the_bad_value(kw, words):
     with pytest.raises(ValueError, match=words):
         MapSettings(**kw)
+
+
+def test_information_limit_predicts_the_achieved_error(arm):
+    """With honest noise the error the posterior implies matches, on average, the error reached."""
+    from body_schema.metrics import expected_pose_errors
+    achieved, expected = [], []
+    for seed in range(6):
+        true, _, est, _ = _run(arm, seed, 30)
+        achieved.append(PoseErrorEvaluator(arm.base, true, arm.calibration_box, n=300)(est.x).position_mm)
+        expected.append(expected_pose_errors(arm.base, est.x, est.P, arm.calibration_box, n=300).position_mm)
+    assert np.mean(achieved) == pytest.approx(np.mean(expected), rel=0.3)
+    # A covariance four times larger implies twice the error.
+    doubled = expected_pose_errors(arm.base, est.x, 4 * est.P, arm.calibration_box, n=300).position_mm
+    assert doubled == pytest.approx(2 * expected[-1], rel=0.05)

@@ -7,8 +7,8 @@ has its own real robot (nominal table perturbed by 4 mm / 2 deg, seed 1000 + s) 
 solved in one batch (prior + all of them, plain least squares, from the initial guess): the
 "information limit" of that run's data. Reported per estimator: final position / orientation
 error (mean, median, std, min, max), the ratio to the batch solution, NEES of the final estimate
-(28 parameters) with its 95% chi-square band, mean NIS (innovations after the 10th update),
-outliers flagged, seconds per update.
+(28 parameters) with its 95% chi-square band, outliers flagged. Each run's observations are saved
+(``observations_<estimator>_<seed>.npz``: q, pose, R, true_dh, x0) for offline comparisons.
 
     python tools/estimator_study.py --seeds 20 --iterations 50 --output results/estimator_study
 """
@@ -48,6 +48,41 @@ def summarise(values: list[float]) -> dict[str, float]:
             'min': float(a.min()), 'max': float(a.max())}
 
 
+def replay(directory: Path, variants: dict[str, MapSettings]) -> str:
+    """Re-run MAP settings online over saved observations (the same data for every variant)."""
+    model = load_robot()
+    files = sorted(directory.glob('observations_*.npz'))
+    if not files:
+        raise SystemExit(f'no observations_*.npz in {directory}')
+    lines = [f'{len(files)} saved runs of {directory}, re-estimated online with each setting', '',
+             '| MAP setting | position [mm] mean / median / std (max) | orientation [deg] mean / median | NEES mean | '
+             'outliers / run |', '|---|---|---|---|---|']
+    for name, settings in variants.items():
+        pos, rot, ne, out = [], [], [], []
+        for f in files:
+            d = np.load(f)
+            est = MapEstimator(model.base, d['x0'], sampling.initial_covariance(model.n_joints), settings,
+                               limits=model.limits)
+            for q, z, r in zip(d['q'], d['pose'], d['R']):
+                est.update(q, z, r)
+            e = PoseErrorEvaluator(model.base, d['true_dh'], model.calibration_box)(est.x)
+            pos.append(e.position_mm)
+            rot.append(e.orientation_deg)
+            ne.append(nees(d['true_dh'].ravel(), est.x, est.P))
+            out.append(est.n_outliers)
+        p, o = summarise(pos), summarise(rot)
+        lines.append(f"| {name} | {p['mean']:.2f} / {p['median']:.2f} / {p['std']:.2f} ({p['max']:.2f}) "
+                     f"| {o['mean']:.2f} / {o['median']:.2f} | {np.mean(ne):.1f} | {np.mean(out):.1f} |")
+        print(lines[-1], flush=True)
+    return '\n'.join(lines) + '\n'
+
+
+#: Robust losses compared by ``--replay`` (name -> settings).
+LOSS_VARIANTS = {f'{loss}, scale {scale:g}': MapSettings(loss=loss, loss_scale=scale)
+                 for loss, scale in (('linear', 1.0), ('huber', 3.0), ('huber', 2.0), ('soft_l1', 2.0),
+                                     ('cauchy', 2.0), ('cauchy', 3.0), ('arctan', 3.0))}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     ap.add_argument('--seeds', type=int, default=20)
@@ -57,7 +92,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--ekf-iterations', type=int, default=5, help="EKF linearisations (the node's default 5)")
     ap.add_argument('--strategy', default='al')
     ap.add_argument('--output', type=Path, default=Path('results/estimator_study'))
+    ap.add_argument('--replay', type=Path, default=None,
+                    help='compare robust losses on the observations saved in this directory instead')
     args = ap.parse_args(argv)
+    if args.replay is not None:
+        text = replay(args.replay, LOSS_VARIANTS)
+        (args.replay / 'losses.md').write_text(text)
+        print(text)
+        return 0
 
     from icub_sim_bridge.world import SimWorld
 
@@ -77,6 +119,10 @@ def main(argv: list[str] | None = None) -> int:
                                 model.calibration_box.mean(axis=1), evaluator,
                                 EstimatorSettings(estimator=kind, iterations=args.ekf_iterations))
             est = r.estimator
+            if r.observations:
+                qs, zs, rs = (np.array(a) for a in zip(*r.observations))
+                np.savez(args.output / f'observations_{kind}_{seed:03d}.npz', q=qs, pose=zs, R=rs,
+                         true_dh=true_dh, x0=x0)
             xb = batch_solution(model, x0, r.observations)
             eb = evaluator(xb)
             # NIS of the innovations once the estimate has settled (after 10 updates).

@@ -22,11 +22,14 @@ model ``x_{k+1} = x_k + w_k``:
 * a random walk ``Q = diag(q_length, q_length, q_angle, q_angle)`` per observation: every stored
   observation ``i`` and the prior carry the drift accumulated since they were taken,
   ``R_i <- R_i + H_i D_i H_i^T`` and ``P_p <- P_p + D_p``, so old evidence weighs less;
-* change detection on the innovations: when the normalised innovations squared (NIS) of the last
-  ``change_window`` observations exceed their ``change_probability`` chi-square bound together,
-  a jump ``diag(jump_length^2, jump_length^2, jump_angle^2, jump_angle^2)`` is added to every
-  stored observation's drift and to the prior, which lets the estimate move to the new body
-  quickly at no price on a body that does not change (the test rarely fires on consistent data);
+* change detection on the innovations: when at least ``change_count`` of the last
+  ``change_window`` normalised innovations squared (NIS) lie beyond their ``change_probability``
+  chi-square bound (6 dof), a jump ``diag(jump_length^2, jump_length^2, jump_angle^2,
+  jump_angle^2)`` is added to the drift of every older observation and to the prior, which lets the
+  estimate move to the new body quickly at no price on a body that does not change. Counting
+  exceedances, not summing NIS, keeps a single gross detection error (a planar flip has NIS in the
+  thousands) from passing for a change: a changed body makes the innovations large one after
+  another;
 * an optional sliding window: beyond ``window`` observations the oldest is folded into the
   Gaussian prior (linearised at the current solution), bounding the cost of an update.
 
@@ -73,10 +76,10 @@ class MapSettings:
     q_length, q_angle : float
         Random-walk variance per observation for lengths [m^2] and angles [rad^2].
     change_probability : float
-        Chi-square probability of the change test on the last ``change_window`` innovations;
+        Chi-square probability (6 dof) an innovation's NIS must exceed to count towards a change;
         0 disables change detection.
-    change_window : int
-        Consecutive observations whose NIS are tested together.
+    change_window, change_count : int
+        A change is declared when ``change_count`` of the last ``change_window`` NIS exceed it.
     jump_length, jump_angle : float
         Standard deviation of the jump added when a change is detected [m], [rad].
     """
@@ -90,6 +93,7 @@ class MapSettings:
     q_angle: float = 0.0
     change_probability: float = 0.0
     change_window: int = 3
+    change_count: int = 2
     jump_length: float = 0.01
     jump_angle: float = float(np.radians(3.0))
 
@@ -114,6 +118,9 @@ class MapSettings:
             raise ValueError(f'window must be 0 (all) or >= 2, got {self.window}')
         if self.change_window < 1:
             raise ValueError(f'change_window must be >= 1, got {self.change_window}')
+        if not 1 <= self.change_count <= self.change_window:
+            raise ValueError(f'change_count must be in [1, change_window={self.change_window}], '
+                             f'got {self.change_count}')
 
 
 @dataclass(frozen=True)
@@ -221,7 +228,7 @@ class MapEstimator:
         jump = np.array([settings.jump_length, settings.jump_length, settings.jump_angle, settings.jump_angle])
         self._jump = np.tile(jump ** 2, self.n_links)
         self._outlier_bound = float(chi2.ppf(settings.outlier_probability, 6))
-        self._change_bound = float(chi2.ppf(settings.change_probability, 6 * settings.change_window)) \
+        self._change_bound = float(chi2.ppf(settings.change_probability, 6)) \
             if settings.change_probability > 0 else np.inf
         # The problem: prior (x_p, P_p) and the observations in the window.
         self.x_p = x0.copy()
@@ -336,11 +343,12 @@ class MapEstimator:
         nis = float(y @ np.linalg.solve(S, y))
         change = False
         self._recent_nis = (self._recent_nis + [nis])[-s.change_window:]
-        if len(self._recent_nis) == s.change_window and sum(self._recent_nis) > self._change_bound:
+        beyond = [v > self._change_bound for v in self._recent_nis]
+        if sum(beyond) >= s.change_count:
             # The body changed: everything known so far (prior and stored observations) may be
-            # off by a jump. The newest change_window - 1 observations are part of the evidence
-            # of the change, so they are not aged.
-            keep = s.change_window - 1
+            # off by a jump. The stored observations since the first exceedance are evidence of
+            # the new body, so they are not aged.
+            keep = len(beyond) - 1 - beyond.index(True)
             old = max(0, self.n_observations - keep)
             self.drift[:old] += self._jump
             self.P_p = self.P_p + np.diag(self._jump)

@@ -77,7 +77,7 @@ def test_change_detection_follows_a_changed_body_and_stays_quiet_otherwise(arm):
     changed = _true(arm, 2).copy()
     changed[4, 1] += 0.010                             # forearm 10 mm longer
     changed[2, 3] += np.radians(3.0)                   # shoulder yaw offset +3 deg
-    settings = MapSettings(change_probability=0.9999)
+    settings = MapSettings(change_probability=0.999)
     true, obs, est, _ = _run(arm, 2, 60, settings, {30: changed})
     assert est.n_changes >= 1
     ev = PoseErrorEvaluator(arm.base, changed, arm.calibration_box, n=300)
@@ -86,6 +86,17 @@ def test_change_detection_follows_a_changed_body_and_stays_quiet_otherwise(arm):
     assert ev(without.x).position_mm > 2 * ev(est.x).position_mm
     quiet = _run(arm, 3, 60, settings)[2]
     assert quiet.n_changes == 0
+
+
+def test_one_gross_outlier_is_not_a_change(arm):
+    settings = MapSettings(change_probability=0.999)
+    true, obs, est, _ = _run(arm, 7, 20, settings)
+    z = arm.with_dh(true).forward_kinematics(obs[0].q)
+    z[:3, :3] = z[:3, :3] @ np.diag([-1.0, -1.0, 1.0])        # a flipped marker: 180 deg off
+    assert est.update(obs[0].q + 1e-3, z, obs[0].R).nis > 1000
+    for o in SyntheticRun(arm, true, PoseDependentNoise(), 70)(3):
+        est.update(o.q, o.pose, o.R)
+    assert est.n_changes == 0 and est.n_outliers == 1
 
 
 def test_window_folds_old_observations_into_the_prior(arm):
@@ -136,7 +147,8 @@ def test_state_dict_round_trip_continues_identically(arm):
 
 @pytest.mark.parametrize('kw, words', [({'loss': 'l2'}, 'loss'), ({'window': 1}, 'window'),
                                        ({'q_length': -1.0}, 'q_length'),
-                                       ({'change_probability': 1.0}, 'change_probability')])
+                                       ({'change_probability': 1.0}, 'change_probability'),
+                                       ({'change_count': 4}, 'change_count')])
 def test_settings_name_the_bad_value(kw, words):
     with pytest.raises(ValueError, match=words):
         MapSettings(**kw)

@@ -29,7 +29,7 @@ demo: setup
 	@bash scripts/demo.sh
 
 bench: setup
-	$(PY) -m calibration_bringup.bench
+	$(PY) -m tools.bench
 
 experiment: setup
 	$(PY) -m calibration_bringup.experiment $(EXPERIMENT_ARGS)

@@ -5,7 +5,7 @@ the selected configuration, the detector's pure module estimates the hand pose, 
 pure module updates, the planner learns the outcome. No motion is simulated (the arm is placed),
 so one iteration costs a render, a detection, an update and a selection. Used to choose gamma,
 delta, the arctan penalty and the occlusion kernel by measurement (``python -m
-active_selector.study --help``); the reported results always come from the real node graph.
+tools.selector_study --help``); the reported results always come from the real node graph.
 """
 from __future__ import annotations
 
@@ -25,8 +25,8 @@ from body_schema.metrics import PoseErrorEvaluator
 from body_schema.noise import ConstantNoise, NoiseModel, PoseDependentNoise
 from dh_estimator.estimator import EstimatorSettings, OnlineEstimator
 
-from .loop import CalibrationLoop, LoopSettings
-from .planner import Planner, PlannerSettings
+from active_selector.loop import CalibrationLoop, LoopSettings
+from active_selector.planner import Planner, PlannerSettings
 
 __all__ = ['EpisodeResult', 'run_episode', 'main']
 

@@ -31,7 +31,7 @@ from scipy.spatial.transform import Rotation
 from body_schema.noise import ConstantNoise, NoiseModel, PoseDependentNoise, view_geometry
 from body_schema.robot import ArmModel
 
-from .detection import DetectorConfig, HandPoseEstimator, MarkerPose, gate_marker
+from marker_detector.detection import DetectorConfig, HandPoseEstimator, MarkerPose, gate_marker
 
 __all__ = ['FLIP_DEG', 'Frame', 'Outcome', 'NoiseFit', 'collect', 'evaluate', 'fit_noise', 'summarize',
            'time_frames', 'binned']

@@ -6,7 +6,7 @@ import pytest
 
 from body_schema import load_robot
 from body_schema.noise import PoseDependentNoise
-from marker_detector.accuracy import Frame, Outcome, _fit_law, evaluate, fit_noise, summarize
+from tools.detector_accuracy import Frame, Outcome, _fit_law, evaluate, fit_noise, summarize
 from marker_detector.detection import DetectedMarker, HandPoseEstimator, solve_marker_pose
 
 

@@ -31,7 +31,7 @@ def run(iterations: int = 8) -> dict[str, float]:
     from marker_detector.detection import HandPoseEstimator
     from marker_detector.detector_node import DetectorNode
 
-    from .selector_node import SelectorNode
+    from active_selector.selector_node import SelectorNode
 
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     ctx = Context()

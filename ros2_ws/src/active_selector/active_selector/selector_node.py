@@ -32,11 +32,9 @@ wait_report_period (s, wall).
 """
 from __future__ import annotations
 
-import enum
 import json
 import sys
 import time
-from collections import deque
 from pathlib import Path
 from typing import Any
 
@@ -60,19 +58,13 @@ from body_schema.noise import ConstantNoise, PoseDependentNoise
 from dh_estimator.messages import (MessageFormatError, msg_to_covariance, msg_to_table, pose_msg_to_matrix,
                                    stamp_to_seconds)
 
+from .loop import CalibrationLoop, Iteration, LoopSettings, Phase
 from .planner import Planner, PlannerSettings
 
 _CN = ConstantNoise()      # fitted CN defaults live in body_schema.noise
 _DEF = PlannerSettings()   # measured selector defaults live in the planner
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 _PDN = PoseDependentNoise()
-
-
-class Phase(enum.Enum):
-    WAITING = 'waiting for inputs'
-    MOVING = 'moving'
-    AWAITING_OUTCOME = 'awaiting outcome'
-    DONE = 'done'
 
 
 def _float(desc: str, lo: float, hi: float) -> ParameterDescriptor:
@@ -135,29 +127,18 @@ class SelectorNode(Node):
             occlusion_length_scale=gp('occlusion_length_scale'), occlusion_a0=gp('occlusion_a0'),
             occlusion_b0=gp('occlusion_b0'), occlusion_mode=gp('occlusion_mode')))
         self.iterations = gp('iterations')
-        self.settle_tol = gp('settle_tolerance')
-        self.settle_timeout = gp('settle_timeout')
-        self.outcome_timeout = gp('outcome_timeout')
-        self.settle_time = gp('settle_time')
+        self.loop = CalibrationLoop(self.planner, LoopSettings(
+            iterations=gp('iterations'), settle_tolerance=gp('settle_tolerance'),
+            settle_timeout=gp('settle_timeout'), settle_time=gp('settle_time'),
+            outcome_timeout=gp('outcome_timeout')), self.now)
         self.progress_file = Path(gp('progress_file')) if gp('progress_file') else None
         if self.progress_file is not None:
             self.progress_file.parent.mkdir(parents=True, exist_ok=True)
             self.progress_file.write_text('')
 
-        self.phase = Phase.WAITING
-        self.q: np.ndarray | None = None
-        self.q_time = 0.0
-        self.q_prev: np.ndarray | None = None
         self.dh: np.ndarray | None = None
         self.P: np.ndarray | None = None
         self.camera_pose: np.ndarray | None = None
-        self.target: np.ndarray | None = None
-        self.reached: np.ndarray | None = None
-        self.selection_seconds = 0.0
-        self.t_command = 0.0
-        self.t_settled = 0.0
-        self.detected: bool | None = None
-        self.statuses: deque[DiagnosticStatus] = deque(maxlen=50)
         self._last_wait_report = 0.0
         self._warned: set[str] = set()
 
@@ -177,8 +158,17 @@ class SelectorNode(Node):
     # ---------------------------------------------------------------------------------- inputs
 
     @property
+    def phase(self) -> Phase:
+        return self.loop.phase
+
+    @property
     def done(self) -> bool:
-        return self.phase is Phase.DONE
+        return self.loop.done
+
+    @property
+    def q(self) -> np.ndarray | None:
+        """The latest joint positions (L,) [rad], None before the first joint state."""
+        return self.loop.q
 
     @property
     def waiting_for(self) -> list[str]:
@@ -212,9 +202,7 @@ class SelectorNode(Node):
             return
         if not np.all(np.isfinite(q)):
             return
-        self.q_prev, self.q, self.q_time = self.q, q, stamp_to_seconds(msg.header.stamp)
-        if self.phase is Phase.MOVING:
-            self._check_settled()
+        self.loop.joint_state(stamp_to_seconds(msg.header.stamp), q)
 
     def on_estimate(self, msg: Float64MultiArray) -> None:
         try:
@@ -235,18 +223,18 @@ class SelectorNode(Node):
             self.get_logger().warning(f'camera pose ignored: {exc}')
 
     def on_markers(self, msg: PoseArray) -> None:
-        if self.phase is Phase.AWAITING_OUTCOME and self.detected is None \
-                and stamp_to_seconds(msg.header.stamp) >= self.t_settled + self.settle_time:
-            self.detected = len(msg.poses) > 0
-            if not self.detected:
-                self._finish_iteration('failed', 'no marker detected after settling')
-                return
-            self._check_status()
+        self._report(self.loop.markers(stamp_to_seconds(msg.header.stamp), len(msg.poses) > 0))
 
     def on_status(self, msg: DiagnosticStatus) -> None:
-        self.statuses.append(msg)
-        if self.phase is Phase.AWAITING_OUTCOME and self.detected:
-            self._check_status()
+        kv = {v.key: v.value for v in msg.values}
+        if 'outcome' not in kv:
+            return
+        try:
+            joints = np.array([float(v) for v in kv.get('joints', '').split()])
+        except ValueError:
+            self._warn_once('status', f"/body_schema/update_status joints {kv.get('joints')!r} are not numbers; ignored")
+            return
+        self._report(self.loop.estimator_outcome(kv['outcome'], joints, msg.message))
 
     # ---------------------------------------------------------------------------------- loop
 
@@ -260,79 +248,37 @@ class SelectorNode(Node):
                     self._last_wait_report = t
                     self.get_logger().info(f'waiting for {", ".join(missing)} before selecting')
                 return
-            if self.planner.start is None:
-                self.planner.start = self.q.copy()
             self._select_and_command()
-        elif self.phase is Phase.MOVING and self.now() - self.t_command > self.settle_timeout:
-            err = np.abs(self.q - self.target)
-            j = int(np.argmax(err))
-            self._finish_iteration('unreachable', f'target not reached within {self.settle_timeout:.1f} s: '
-                                   f'{self.model.joint_names[j]} is {np.degrees(err[j]):.2f} deg away')
-        elif self.phase is Phase.AWAITING_OUTCOME and self.now() - self.t_settled > self.outcome_timeout:
-            why = ('no /markers frame after settling' if self.detected is None
-                   else 'markers seen but no estimator update for this configuration')
-            self._finish_iteration('timeout', why)
+        else:
+            self._report(self.loop.tick())
 
     def _select_and_command(self) -> None:
-        sel = self.planner.select(self.dh, self.P, self.camera_pose)
-        self.target = np.clip(sel.theta, self.model.limits[:, 0], self.model.limits[:, 1])
-        self.selection_seconds = sel.seconds
+        target = self.loop.select(self.dh, self.P, self.camera_pose)
         traj = JointTrajectory()
         traj.header.stamp = self.get_clock().now().to_msg()
         traj.joint_names = list(self.model.joint_names)
-        traj.points = [JointTrajectoryPoint(positions=self.target.tolist(), time_from_start=Duration())]
-        self.phase = Phase.MOVING
-        self.t_command = self.now()
-        self.detected = None
+        traj.points = [JointTrajectoryPoint(positions=target.tolist(), time_from_start=Duration())]
         self.pub_cmd.publish(traj)
-        self._check_settled()
 
-    def _check_settled(self) -> None:
-        if self.q is None or self.q_prev is None or self.q_time < self.t_command:
+    def _report(self, it: Iteration | None) -> None:
+        """Log, publish and append the progress record of an ended iteration."""
+        if it is None:
             return
-        if np.max(np.abs(self.q - self.target)) <= self.settle_tol and \
-                np.max(np.abs(self.q - self.q_prev)) <= self.settle_tol * 0.1:
-            self.phase = Phase.AWAITING_OUTCOME
-            self.t_settled = self.q_time
-            self.reached = self.q.copy()
-
-    def _check_status(self) -> None:
-        for s in reversed(self.statuses):
-            kv = {v.key: v.value for v in s.values}
-            if kv.get('outcome') not in ('accepted', 'rejected'):
-                continue
-            q = np.array([float(v) for v in kv.get('joints', '').split()])
-            if q.shape == self.reached.shape and np.max(np.abs(q - self.reached)) <= 2 * self.settle_tol:
-                self._finish_iteration(kv['outcome'], s.message)
-                return
-
-    def _finish_iteration(self, outcome: str, why: str) -> None:
-        reached = self.reached if self.phase is Phase.AWAITING_OUTCOME else self.q.copy()
-        a = self.planner.record(self.target, reached, outcome, bool(self.detected), self.selection_seconds)
+        a = it.attempt
         msg = (f'iteration {a.iteration}/{self.iterations} {self.planner.strategy.value}: '
-               f'target [{" ".join(f"{v:.1f}" for v in np.degrees(a.target))}] deg, outcome {outcome} '
-               f'({why}), movement {a.movement_deg:.1f} deg, selection {a.selection_seconds:.2f} s')
+               f'target [{" ".join(f"{v:.1f}" for v in np.degrees(a.target))}] deg, outcome {a.outcome} '
+               f'({it.reason}), movement {a.movement_deg:.1f} deg, selection {a.selection_seconds:.2f} s')
         if a.detected:      # rclpy binds one severity to each logging call site
             self.get_logger().info(msg)
         else:
             self.get_logger().warning(msg)
-        record = {'iteration': a.iteration, 'strategy': self.planner.strategy.value, 'outcome': outcome,
-                  'detected': a.detected, 'reason': why, 'target_deg': np.degrees(a.target).tolist(),
-                  'reached_deg': np.degrees(a.reached).tolist(), 'movement_deg': a.movement_deg,
-                  'selection_s': a.selection_seconds, 'discarded': self.planner.discarded,
-                  'move_sim_s': (self.t_settled if self.phase is Phase.AWAITING_OUTCOME else self.now()) - self.t_command,
-                  'outcome_sim_s': self.now() - self.t_settled if self.phase is Phase.AWAITING_OUTCOME else 0.0,
-                  'sim_time': self.now()}
-        self.pub_progress.publish(String(data=json.dumps(record)))
+        self.pub_progress.publish(String(data=json.dumps(it.record)))
         if self.progress_file is not None:
             with self.progress_file.open('a') as f:
-                f.write(json.dumps(record) + '\n')
-        if a.iteration >= self.iterations:
-            self.phase = Phase.DONE
+                f.write(json.dumps(it.record) + '\n')
+        if self.done:
             self.get_logger().info(f'done: {a.iteration} iterations, movement {a.movement_deg:.1f} deg, '
                                    f'{self.planner.discarded} discarded')
-        else:
-            self.phase = Phase.WAITING
 
 
 def main(args: list[str] | None = None) -> None:

@@ -17,6 +17,7 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
+import time
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -183,6 +184,13 @@ class SimWorld:
         Head joints [rad] used to place the (static) head geometry.
     physics_step : float
         Fixed physics time step [s].
+
+    Attributes
+    ----------
+    renders : int
+        Images rendered so far (a supersampled one counts once).
+    render_seconds : float
+        Wall seconds spent rendering them: a timing hook for benchmarks and experiments.
     """
 
     def __init__(self, robot: ArmModel, dh: ArrayLike | None = None, *,
@@ -212,6 +220,8 @@ class SimWorld:
                 raise ValueError(f'marker {spec.placement.name!r}: printed side {spec.quad_side:.4f} m '
                                  f'(with quiet zone) does not fit on the {HAND_SIZE[:2]} m palm')
         self.physics_step = float(physics_step)
+        self.renders = 0
+        self.render_seconds = 0.0
         self._tmp = tempfile.mkdtemp(prefix='icub_sim_')
         self._client = bullet_client.BulletClient(connection_mode=p.DIRECT)
         try:
@@ -371,14 +381,23 @@ class SimWorld:
         -------
         ndarray, shape (H, W, 3), uint8, C-contiguous
         """
+        t0 = time.perf_counter()
+        try:
+            return self._render(root_T_cam, intrinsics, near, far, supersample)
+        finally:
+            self.renders += 1
+            self.render_seconds += time.perf_counter() - t0
+
+    def _render(self, root_T_cam: ArrayLike, intrinsics: CameraIntrinsics, near: float, far: float,
+                supersample: int) -> NDArray[np.uint8]:
         if supersample != 1:
             if int(supersample) != supersample or supersample < 1:
                 raise ValueError(f'supersample must be a positive integer, got {supersample}')
             import cv2
 
             s = int(supersample)
-            big = self.render(root_T_cam, intrinsics.scaled(intrinsics.width * s, intrinsics.height * s),
-                              near, far)
+            big = self._render(root_T_cam, intrinsics.scaled(intrinsics.width * s, intrinsics.height * s),
+                               near, far, 1)
             return cv2.resize(big, (intrinsics.width, intrinsics.height), interpolation=cv2.INTER_AREA)
         w, h = intrinsics.width, intrinsics.height
         view = cam.to_gl_list(cam.gl_view(root_T_cam))

@@ -100,8 +100,11 @@ def test_default_render_has_no_bias(world) -> None:
 def test_higher_resolution_keeps_field_of_view(world) -> None:
     world.set_joint_positions(ROBOT.calibration_box.mean(axis=1))
     cam = ROBOT.camera_pose('left')
+    renders, seconds = world.renders, world.render_seconds
     small = world.render(cam, ROBOT.camera)
     big = world.render(cam, ROBOT.camera.scaled(640, 480))
+    # The timing hook counts both renders and the time they took.
+    assert world.renders == renders + 2 and world.render_seconds > seconds
     assert small.shape == (240, 320, 3) and big.shape == (480, 640, 3)
     assert small.flags['C_CONTIGUOUS'] and small.dtype == np.uint8
     down = cv2.resize(big, (320, 240), interpolation=cv2.INTER_AREA)

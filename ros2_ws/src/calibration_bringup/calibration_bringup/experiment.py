@@ -7,7 +7,7 @@ Usage::
     python -m calibration_bringup.experiment --methods AL CCSAL --repetitions 3 --iterations 10
     python -m calibration_bringup.experiment_figures results/experiment     # re-plot only
 
-Methods (DESIGN.md section 5): ``R``, ``AL``, ``UCSAL``, ``CCSAL`` with the pose-dependent noise
+Methods (docs/architecture.md section 5): ``R``, ``AL``, ``UCSAL``, ``CCSAL`` with the pose-dependent noise
 model, and ``AL-CN``, ``UCSAL-CN``, ``CCSAL-CN`` with the constant one (selector and estimator
 both use the CN covariance; the detector keeps publishing pose-dependent covariances, which the
 estimator then ignores).

@@ -193,7 +193,7 @@ class InProcessGraph:
     def _recorder(self, path: Path, parameter_services: bool) -> Any:
         from rclpy.parameter import Parameter
 
-        from .contract import CONTRACT, IMAGE_TOPICS
+        from calibration_interfaces.contract import CONTRACT, IMAGE_TOPICS
 
         try:
             from .recorder_node import RecorderNode

@@ -4,7 +4,7 @@
 * :func:`descriptor` and :func:`declare_settings`: parameters declared from a settings dataclass
   (:mod:`calibration_interfaces.parameters`);
 * :class:`WarnOnce`: a warning logged once per key;
-* :func:`message_class` and :func:`string_list`.
+* :func:`message_class`.
 """
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from .contract import Durability, QosSpec, Reliability, topic
 from .parameters import ParameterSpec, parameter_specs, settings_from_parameters
 
-__all__ = ['qos_profile', 'descriptor', 'declare_settings', 'WarnOnce', 'message_class', 'string_list']
+__all__ = ['qos_profile', 'descriptor', 'declare_settings', 'WarnOnce', 'message_class']
 
 
 def qos_profile(spec: QosSpec | str, depth: int | None = None) -> QoSProfile:
@@ -60,13 +60,20 @@ def descriptor(description: str, range: tuple[float, float] | None = None, *,  #
     return d
 
 
+_ARRAY_TYPES = {'string': Parameter.Type.STRING_ARRAY, 'double': Parameter.Type.DOUBLE_ARRAY,
+                'integer': Parameter.Type.INTEGER_ARRAY}
+
+
 def _declare(node: Node, spec: ParameterSpec, default: Any, read_only: bool) -> Any:
     desc = descriptor(spec.full_description, spec.range,
                       integer=isinstance(default, int) and not isinstance(default, bool), read_only=read_only)
     if isinstance(default, tuple) and not default:
-        # rclpy cannot type an empty list: declare a string array without a value (unset = empty).
-        node.declare_parameter(spec.name, Parameter.Type.STRING_ARRAY, desc)
-        return string_list(node, spec.name)
+        # rclpy cannot type an empty list: declare the array type without a value (unset = empty).
+        node.declare_parameter(spec.name, _ARRAY_TYPES[spec.array_type], desc)
+        try:
+            return tuple(node.get_parameter(spec.name).value or ())
+        except ParameterUninitializedException:
+            return ()
     value = list(default) if isinstance(default, tuple) else default
     return node.declare_parameter(spec.name, value, desc).value
 
@@ -131,16 +138,3 @@ def message_class(type_name: str) -> type:
         return getattr(importlib.import_module(f'{pkg}.msg'), name)
     except (ImportError, AttributeError) as exc:
         raise ImportError(f'message type {type_name!r} is not installed: {exc}') from exc
-
-
-def string_list(node: Node, name: str) -> list[str]:
-    """A string-array parameter declared without a default (unset = empty), blanks dropped.
-
-    rclpy cannot declare an empty list as a string array (``[]`` becomes a byte array that
-    refuses strings later), so such parameters are declared by type and may be unset.
-    """
-    try:
-        value = node.get_parameter(name).value
-    except ParameterUninitializedException:
-        return []
-    return [s for s in (value or []) if s]

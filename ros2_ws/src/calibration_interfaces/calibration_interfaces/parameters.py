@@ -17,11 +17,15 @@ default, one description and one range.
 from __future__ import annotations
 
 import dataclasses
+import importlib
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
-__all__ = ['setting', 'ParameterSpec', 'parameter_specs', 'settings_from_parameters', 'markdown_table']
+__all__ = ['setting', 'ParameterSpec', 'parameter_specs', 'settings_from_parameters', 'markdown_table',
+           'read_params_file', 'update_tables', 'main']
 
 _KEY = 'ros_parameter'
 
@@ -37,8 +41,8 @@ class ParameterSpec:
     name : str
         The parameter name (the field name unless the field says otherwise).
     default : Any
-        The default; tuples are declared as ROS arrays. ``()`` declares a string array without
-        a default (rclpy cannot type an empty list).
+        The default; tuples are declared as ROS arrays. ``()`` declares an array of
+        ``array_type`` without a value (rclpy cannot type an empty list); unset reads as ``()``.
     description : str
     range : tuple of two numbers, or None
         Inclusive bounds (float or integer range, by the default's type).
@@ -52,6 +56,7 @@ class ParameterSpec:
     description: str
     range: tuple[float, float] | None = None
     choices: tuple[str, ...] | None = None
+    array_type: str = 'string'
 
     @property
     def full_description(self) -> str:
@@ -62,7 +67,7 @@ class ParameterSpec:
 
 
 def setting(default: Any, description: str, range: tuple[float, float] | None = None, *,  # noqa: A002
-            choices: Sequence[str] | None = None, name: str | None = None) -> Any:
+            choices: Sequence[str] | None = None, name: str | None = None, array_type: str = 'string') -> Any:
     """A dataclass field that is also a ROS parameter (see the module docstring).
 
     Parameters
@@ -77,13 +82,18 @@ def setting(default: Any, description: str, range: tuple[float, float] | None = 
         Allowed values of a string parameter.
     name : str, optional
         Parameter name when it differs from the field name.
+    array_type : {'string', 'double', 'integer'}
+        Element type of an array parameter whose default is empty.
     """
     if isinstance(default, list):
         raise TypeError(f'setting default {default!r}: use a tuple (settings are frozen)')
     if range is not None and not isinstance(default, (int, float)):
         raise TypeError(f'setting default {default!r}: a range needs a numeric default')
+    if array_type not in ('string', 'double', 'integer'):
+        raise ValueError(f"array_type must be 'string', 'double' or 'integer', got {array_type!r}")
     meta = {_KEY: {'description': description, 'range': range,
-                   'choices': tuple(choices) if choices is not None else None, 'name': name}}
+                   'choices': tuple(choices) if choices is not None else None, 'name': name,
+                   'array_type': array_type}}
     return dataclasses.field(default=default, metadata=meta)
 
 
@@ -95,7 +105,7 @@ def parameter_specs(settings: type | Any) -> list[ParameterSpec]:
         if meta is None:
             continue
         specs.append(ParameterSpec(f.name, meta['name'] or f.name, f.default, meta['description'],
-                                   meta['range'], meta['choices']))
+                                   meta['range'], meta['choices'], meta['array_type']))
     return specs
 
 
@@ -146,3 +156,63 @@ def markdown_table(*settings: type) -> str:
                    else ' \\| '.join(s.choices) if s.choices else '')
             lines.append(f'| `{s.name}` | {_cell(s.default)} | {rng} | {s.description} |')
     return '\n'.join(lines)
+
+
+def read_params_file(path: str | Path, node: str) -> dict[str, Any]:
+    """The ``ros__parameters`` of ``node`` in a ROS 2 parameter file (``--params-file``).
+
+    Lets a tool without rclpy (the offline evaluation) use the settings a run used.
+
+    Raises
+    ------
+    ValueError
+        If the file has no ``<node>: ros__parameters:`` mapping; the message names the file.
+    """
+    import yaml
+
+    doc = yaml.safe_load(Path(path).read_text()) or {}
+    section = doc.get(node, doc.get(f'/{node}', {})) if isinstance(doc, dict) else {}
+    values = section.get('ros__parameters') if isinstance(section, dict) else None
+    if not isinstance(values, dict):
+        raise ValueError(f'{path}: no "{node}: ros__parameters:" mapping')
+    return values
+
+
+_BLOCK = re.compile(r'(<!-- parameters: ([^>]*?) -->\n)(.*?)(<!-- /parameters -->)', re.S)
+
+
+def _resolve(ref: str) -> type:
+    module, _, name = ref.strip().partition(':')
+    return getattr(importlib.import_module(module), name)
+
+
+def update_tables(text: str) -> str:
+    """``text`` with every generated parameter table rewritten from its settings classes.
+
+    A table sits between ``<!-- parameters: pkg.module:Class, ... -->`` and
+    ``<!-- /parameters -->``; :func:`markdown_table` of the listed classes replaces it. A README
+    is up to date when this returns it unchanged (the test suite checks every README).
+    """
+    def render(m: re.Match[str]) -> str:
+        classes = [_resolve(r) for r in m.group(2).split(',')]
+        return f'{m.group(1)}{markdown_table(*classes)}\n{m.group(4)}'
+
+    return _BLOCK.sub(render, text)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m calibration_interfaces.parameters FILE...``: regenerate the tables in place."""
+    import sys
+
+    for path in (sys.argv[1:] if argv is None else argv):
+        p = Path(path)
+        text = p.read_text()
+        new = update_tables(text)
+        if new != text:
+            p.write_text(new)
+            print(f'updated {p}')
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

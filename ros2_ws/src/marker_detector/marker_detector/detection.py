@@ -32,6 +32,7 @@ from scipy.spatial.transform import Rotation
 
 from body_schema.noise import NoiseModel, PoseDependentNoise, view_geometry
 from body_schema.robot import ArmModel, MarkerPlacement
+from calibration_interfaces.parameters import setting
 
 __all__ = [
     'FUSION_MODES', 'DetectorConfig', 'DetectedMarker', 'MarkerPose', 'HandEstimate',
@@ -71,15 +72,17 @@ class DetectorConfig:
         Then re-locate corners from fitted edge lines (:func:`refine_corners_edges`).
     """
 
-    max_reprojection_error_px: float = 1.0
-    ambiguity_ratio: float = 2.0
-    ambiguity_margin_px: float = 0.1
-    ambiguity_min_angle_deg: float = 8.0
-    refine_lm: bool = True
-    fusion: str = 'best'
-    min_side_px: float = 8.0
-    corner_refinement: bool = True
-    edge_refinement: bool = True
+    max_reprojection_error_px: float = setting(1.0, 'Reject a marker whose RMS corner reprojection error is '
+                                               'larger [px]', (0.0, 100.0))
+    ambiguity_ratio: float = setting(2.0, 'IPPE flip is ambiguous when alt_err < ratio * best_err + margin',
+                                     (1.0, 100.0))
+    ambiguity_margin_px: float = setting(0.1, 'Additive margin of the ambiguity test [px]', (0.0, 100.0))
+    ambiguity_min_angle_deg: float = setting(8.0, 'Solutions closer than this are not ambiguous [deg]', (0.0, 180.0))
+    refine_lm: bool = setting(True, 'Levenberg-Marquardt polish of the IPPE pose')
+    fusion: str = setting('best', 'Combining several accepted markers', choices=FUSION_MODES)
+    min_side_px: float = setting(8.0, 'Ignore markers with a shorter side [px]', (0.0, 1000.0))
+    corner_refinement: bool = setting(True, "ArUco's sub-pixel corner refinement (CORNER_REFINE_SUBPIX)")
+    edge_refinement: bool = setting(True, 'Corners from fitted edge lines (removes ArUco corner bias)')
 
     def __post_init__(self) -> None:
         if self.fusion not in FUSION_MODES:

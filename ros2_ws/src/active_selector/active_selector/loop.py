@@ -26,13 +26,12 @@ from typing import Any, Callable
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from calibration_interfaces.outcome import Outcome
+from calibration_interfaces.parameters import setting
+
 from .planner import Attempt, Planner
 
 __all__ = ['Phase', 'LoopSettings', 'Iteration', 'LoopStateError', 'CalibrationLoop']
-
-#: Estimator outcomes that end an iteration (others, e.g. 'duplicate', leave it to the timeout).
-FINAL_ESTIMATOR_OUTCOMES = ('accepted', 'rejected')
-
 
 class Phase(enum.Enum):
     WAITING = 'waiting for inputs'
@@ -66,11 +65,12 @@ class LoopSettings:
         Seconds after settling to get an outcome before the iteration is ``timeout``.
     """
 
-    iterations: int = 50
-    settle_tolerance: float = 0.002
-    settle_timeout: float = 30.0
-    settle_time: float = 0.1
-    outcome_timeout: float = 5.0
+    iterations: int = setting(50, 'Iterations (measurement attempts) of the run', (1, 100000))
+    settle_tolerance: float = setting(0.002, 'Max joint error counted as arrived [rad]', (1e-6, 0.5))
+    settle_timeout: float = setting(30.0, 'Seconds (sim) to reach a target before giving up', (0.1, 1e4))
+    settle_time: float = setting(0.1, "Seconds (sim) the arm rests before the attempt image (match the "
+                                 "estimator's static_window)", (0.0, 10.0))
+    outcome_timeout: float = setting(5.0, 'Seconds (sim) after settling to get an outcome', (0.1, 1e4))
 
     def __post_init__(self) -> None:
         if self.iterations < 1:
@@ -138,7 +138,7 @@ class CalibrationLoop:
         self.t_settled = 0.0
         self.detected: bool | None = None
         # Recent estimator verdicts (outcome, joints, message): a verdict may come before the frame.
-        self._outcomes: deque[tuple[str, NDArray[np.float64], str]] = deque(maxlen=50)
+        self._outcomes: deque[tuple[Outcome, NDArray[np.float64], str]] = deque(maxlen=50)
 
     @property
     def done(self) -> bool:
@@ -195,17 +195,23 @@ class CalibrationLoop:
                 and t >= self.t_settled + self.settings.settle_time:
             self.detected = bool(detected)
             if not self.detected:
-                return self._finish('failed', 'no marker detected after settling')
+                return self._finish(Outcome.FAILED, 'no marker detected after settling')
             return self._match_outcome()
         return None
 
-    def estimator_outcome(self, outcome: str, joints: ArrayLike, message: str = '') -> Iteration | None:
+    def estimator_outcome(self, outcome: Outcome | str, joints: ArrayLike, message: str = '') -> Iteration | None:
         """The estimator's verdict on an observation at configuration ``joints`` (L,) [rad].
 
-        It ends the iteration when it is final (accepted, rejected), the hand was seen and
+        It ends the iteration when the filter evaluated the observation (accepted, rejected;
+        others, e.g. duplicate, leave the iteration to its timeout), the hand was seen and
         ``joints`` is the reached configuration (within twice the settle tolerance).
+
+        Raises
+        ------
+        ValueError
+            If ``outcome`` is not an :class:`~calibration_interfaces.outcome.Outcome` value.
         """
-        self._outcomes.append((str(outcome), np.asarray(joints, dtype=float).ravel(), message))
+        self._outcomes.append((Outcome(outcome), np.asarray(joints, dtype=float).ravel(), message))
         if self.phase is Phase.AWAITING_OUTCOME and self.detected:
             return self._match_outcome()
         return None
@@ -216,12 +222,12 @@ class CalibrationLoop:
         if self.phase is Phase.MOVING and self.clock() - self.t_command > s.settle_timeout:
             err = np.abs(self.q - self.target)
             j = int(np.argmax(err))
-            return self._finish('unreachable', f'target not reached within {s.settle_timeout:.1f} s: '
+            return self._finish(Outcome.UNREACHABLE, f'target not reached within {s.settle_timeout:.1f} s: '
                                 f'{self.planner.model.joint_names[j]} is {np.degrees(err[j]):.2f} deg away')
         if self.phase is Phase.AWAITING_OUTCOME and self.clock() - self.t_settled > s.outcome_timeout:
             why = ('no /markers frame after settling' if self.detected is None
                    else 'markers seen but no estimator update for this configuration')
-            return self._finish('timeout', why)
+            return self._finish(Outcome.TIMEOUT, why)
         return None
 
     # ------------------------------------------------------------------------------ transitions
@@ -237,21 +243,21 @@ class CalibrationLoop:
 
     def _match_outcome(self) -> Iteration | None:
         for outcome, q, message in reversed(self._outcomes):
-            if outcome not in FINAL_ESTIMATOR_OUTCOMES:
+            if not outcome.updated:
                 continue
             if q.shape == self.reached.shape and \
                     np.max(np.abs(q - self.reached)) <= 2 * self.settings.settle_tolerance:
                 return self._finish(outcome, message)
         return None
 
-    def _finish(self, outcome: str, why: str) -> Iteration:
+    def _finish(self, outcome: Outcome, why: str) -> Iteration:
         now = self.clock()
         settled = self.phase is Phase.AWAITING_OUTCOME
         reached = self.reached if settled else self.q.copy()
         a = self.planner.record(self.target, reached, outcome, bool(self.detected), self.selection_seconds)
         move_s = (self.t_settled if settled else now) - self.t_command
         outcome_s = now - self.t_settled if settled else 0.0
-        record = {'iteration': a.iteration, 'strategy': self.planner.strategy.value, 'outcome': outcome,
+        record = {'iteration': a.iteration, 'strategy': self.planner.strategy.value, 'outcome': outcome.value,
                   'detected': a.detected, 'reason': why, 'target_deg': np.degrees(a.target).tolist(),
                   'reached_deg': np.degrees(a.reached).tolist(), 'movement_deg': a.movement_deg,
                   'selection_s': a.selection_seconds, 'discarded': self.planner.discarded,

@@ -20,6 +20,8 @@ from __future__ import annotations
 import os
 from typing import Any
 
+from body_schema.noise import NOISE_MODELS
+
 #: Launch arguments: name -> (default, description).
 ARGUMENTS: dict[str, tuple[str, str]] = {
     'strategy': ('al', 'random | al | ucsal | ccsal'),
@@ -43,8 +45,8 @@ def node_specs(args: dict[str, str]) -> list[dict[str, Any]]:
     """
     out = os.path.abspath(args['output'])
     noise = args['noise']
-    if noise not in ('pose_dependent', 'constant'):
-        raise ValueError(f"noise must be 'pose_dependent' or 'constant', got {noise!r}")
+    if noise not in NOISE_MODELS:
+        raise ValueError(f'noise must be one of {list(NOISE_MODELS)}, got {noise!r}')
     seed = int(args['seed'])
     return [
         # The recorder first, so every latched fact (true table, initial estimate, camera poses) is in the bag.
@@ -58,7 +60,7 @@ def node_specs(args: dict[str, str]) -> list[dict[str, Any]]:
          'params_file': 'detector.yaml', 'parameters': {}},
         {'name': 'estimator', 'package': 'dh_estimator', 'executable': 'estimator_node',
          'params_file': 'estimator.yaml',
-         'parameters': {'initial_seed': seed, 'noise_model': 'constant' if noise == 'constant' else 'message',
+         'parameters': {'initial_seed': seed, 'noise_model': noise,
                         'export_dir': os.path.join(out, 'model')}},
         {'name': 'selector', 'package': 'active_selector', 'executable': 'selector_node',
          'params_file': 'selector.yaml',

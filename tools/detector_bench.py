@@ -19,7 +19,7 @@ from body_schema.noise import PoseDependentNoise
 from body_schema.sampling import uniform_configs
 
 from marker_detector.detection import DetectorConfig, HandPoseEstimator, fuse_estimates, gate_marker
-from tools.detector_accuracy import (FLIP_DEG, Frame, Outcome, binned, collect, evaluate, fit_noise, summarize,
+from tools.detector_accuracy import (FLIP_DEG, Frame, FrameScores, binned, collect, evaluate, fit_noise, summarize,
                                      time_frames)
 
 RES_LOW, RES_HIGH = (320, 240), (640, 480)
@@ -60,10 +60,10 @@ def _stereo_rows(left: list[Frame], right: list[Frame], est: HandPoseEstimator) 
     return rows
 
 
-def _concat(a: Outcome, b: Outcome) -> Outcome:
+def _concat(a: FrameScores, b: FrameScores) -> FrameScores:
     """Two evaluations as one (for fitting on both eyes)."""
-    return Outcome(*[np.concatenate([getattr(a, f.name), getattr(b, f.name)])
-                     for f in fields(Outcome) if f.name != 'statuses'])
+    return FrameScores(*[np.concatenate([getattr(a, f.name), getattr(b, f.name)])
+                     for f in fields(FrameScores) if f.name != 'statuses'])
 
 
 def run(n: int = 500, seed: int = 0, noise_std: float = 2.0, robot_name: str = 'icub_right_arm',

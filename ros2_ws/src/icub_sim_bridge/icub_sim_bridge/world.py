@@ -26,12 +26,13 @@ import pybullet as p
 from numpy.typing import ArrayLike, NDArray
 from pybullet_utils import bullet_client
 
+from body_schema.markers import aruco_dictionary, marker_corners
 from body_schema.robot import ArmModel, CameraIntrinsics, MarkerPlacement
 from body_schema.urdf import FixedLink, Visual, dh_chain_urdf, xyz_rpy_to_transform
 
 from . import camera as cam
 
-__all__ = ['HAND_SIZE', 'MarkerSpec', 'SimWorld', 'marker_texture', 'aruco_dictionary']
+__all__ = ['HAND_SIZE', 'MarkerSpec', 'SimWorld', 'marker_texture']
 
 #: Palm box extents in the hand frame [m]: x toward the fingers, y across, z palm thickness.
 HAND_SIZE = (0.07, 0.055, 0.025)
@@ -73,16 +74,6 @@ def _grid_obj(n: int) -> str:
 
 #: Grid resolution of the marker quads (see :func:`_grid_obj`).
 MARKER_GRID = 1
-
-
-def aruco_dictionary(name: str):
-    """The cv2.aruco predefined dictionary called ``name`` (e.g. ``'DICT_4X4_50'``)."""
-    import cv2
-
-    code = getattr(cv2.aruco, name, None)
-    if not name.startswith('DICT_') or not isinstance(code, int):
-        raise ValueError(f'unknown ArUco dictionary {name!r}; expected a cv2.aruco DICT_* name')
-    return cv2.aruco.getPredefinedDictionary(code)
 
 
 def marker_texture(dictionary: str, marker_id: int, cell_px: int = 24,
@@ -133,8 +124,7 @@ class MarkerSpec:
 
     def corners_in_marker(self) -> NDArray[np.float64]:
         """The black square's corners in ArUco order (TL, TR, BR, BL), shape (4, 3)."""
-        s = self.side_length / 2
-        return np.array([[-s, s, 0], [s, s, 0], [s, -s, 0], [-s, -s, 0]])
+        return marker_corners(self.side_length)
 
 
 def _segment_visuals(a: float, d: float, radius: float, rgba: tuple, joint_ball: bool = True) -> list[Visual]:

@@ -190,7 +190,7 @@ def test_projected_corners_match_detected_ones_over_the_wire(ros) -> None:
 
     from body_schema.noise import view_geometry
     from icub_sim_bridge.camera import project_points, refine_square_corners
-    from icub_sim_bridge.world import aruco_dictionary
+    from body_schema.markers import aruco_dictionary
 
     make_sim(ros, supersample=2, cameras=['left'], max_joint_speed_deg=360.0)
     probe = Probe(ros)

@@ -9,7 +9,8 @@ from body_schema.noise import view_geometry
 from body_schema.robot import load_robot
 from body_schema.sampling import perturb_dh, uniform_configs
 from icub_sim_bridge.camera import degrade, gl_projection, project_points, refine_square_corners
-from icub_sim_bridge.world import SimWorld, aruco_dictionary, marker_texture
+from body_schema.markers import aruco_dictionary
+from icub_sim_bridge.world import SimWorld, marker_texture
 
 ROBOT = load_robot()
 

@@ -10,8 +10,8 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import CameraInfo, Image
 
 from body_schema import load_robot
+from body_schema.kinematics import rotation_angle_deg
 from body_schema.noise import PoseDependentNoise, view_geometry
-from marker_detector.detection import rotation_angle_deg
 from calibration_interfaces.messages import matrix_to_pose_msg, pose_msg_to_matrix
 from calibration_interfaces.node_util import qos_profile
 from marker_detector.detector_node import DetectorNode

@@ -27,7 +27,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Callable, Iterator, Mapping
 
-__all__ = ['NODES', 'GraphTimeout', 'default_parameters', 'merge_parameters', 'recorder_available',
+__all__ = ['NODES', 'PARAMS_FILES', 'GraphTimeout', 'config_dir', 'default_parameters', 'merge_parameters', 'recorder_available',
            'ros_session', 'CallbackTimer', 'InProcessGraph']
 
 #: The graph's nodes, in creation order (the recorder, if any, comes last).
@@ -38,20 +38,43 @@ class GraphTimeout(TimeoutError):
     """The graph did not reach a condition within its deadline (names the condition)."""
 
 
+#: Each node's parameter file in ``share/calibration_bringup/config`` and its node name there.
+PARAMS_FILES = {'sim': ('sim.yaml', 'icub_sim'), 'detector': ('detector.yaml', 'marker_detector'),
+                'estimator': ('estimator.yaml', 'dh_estimator'), 'selector': ('selector.yaml', 'active_selector')}
+
+
+def config_dir() -> Path:
+    """``share/calibration_bringup/config`` when installed, else the package's ``config/`` sources."""
+    try:
+        from ament_index_python.packages import get_package_share_directory
+        installed = Path(get_package_share_directory('calibration_bringup')) / 'config'
+        if installed.is_dir():
+            return installed
+    except (ImportError, LookupError, ValueError, OSError):   # not installed, or no prefix path
+        pass
+    return Path(__file__).resolve().parents[1] / 'config'
+
+
 def default_parameters() -> dict[str, dict[str, Any]]:
-    """Parameter overrides of an in-process graph: the simulator as fast as it can and the left
-    eye only, every other node on the simulator's clock, no model export at shutdown.
+    """Parameters of an in-process graph: each node's parameter file (the values every run uses,
+    as ``run_calibration.sh`` and the launch file pass them), then the in-process choices: the
+    simulator as fast as it can and the left eye only, every other node on the simulator's
+    clock, no model export at shutdown.
 
     Returns
     -------
     dict
         ``{'sim': {...}, 'detector': {...}, 'estimator': {...}, 'selector': {...}}``.
     """
+    from calibration_interfaces.parameters import read_params_file
+
+    config = config_dir()
+    files = {key: read_params_file(config / name, node) for key, (name, node) in PARAMS_FILES.items()}
     sim_time = {'use_sim_time': True}
-    return {'sim': {'real_time_factor': 0.0, 'cameras': ['left']},
-            'detector': dict(sim_time),
-            'estimator': {**sim_time, 'export_on_shutdown': False},
-            'selector': dict(sim_time)}
+    return merge_parameters(files, {'sim': {'real_time_factor': 0.0, 'cameras': ['left']},
+                                    'detector': dict(sim_time),
+                                    'estimator': {**sim_time, 'export_on_shutdown': False},
+                                    'selector': dict(sim_time)})
 
 
 def merge_parameters(*layers: Mapping[str, Mapping[str, Any]]) -> dict[str, dict[str, Any]]:

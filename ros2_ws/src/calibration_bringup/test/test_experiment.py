@@ -37,7 +37,7 @@ def test_node_parameters_follow_the_method(method: str) -> None:
     expected = 'constant' if m.constant_noise else None
     assert p['selector'].get('noise_model') == expected
     assert p['estimator'].get('noise_model') == expected
-    assert 'noise_model' not in p['detector']
+    assert p['detector'] == ex.node_parameters(ex.RunSpec('AL', 0, 17, 9))['detector']
 
 
 def test_node_parameters_are_declared_by_the_nodes(ros) -> None:

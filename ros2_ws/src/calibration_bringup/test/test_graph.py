@@ -7,16 +7,30 @@ import inspect
 import pytest
 from std_msgs.msg import String
 
-from calibration_bringup.graph import CallbackTimer, InProcessGraph, default_parameters, merge_parameters
+from calibration_bringup.graph import (PARAMS_FILES, CallbackTimer, InProcessGraph, config_dir, default_parameters,
+                                       merge_parameters)
+from calibration_interfaces.parameters import read_params_file
 
 
 def test_later_layers_win_per_parameter_and_defaults_are_not_shared() -> None:
-    merged = merge_parameters(default_parameters(), {'selector': {'iterations': 3}, 'sim': {'real_time_factor': 1.0}})
-    assert merged['selector'] == {'use_sim_time': True, 'iterations': 3}
-    assert merged['sim'] == {'real_time_factor': 1.0, 'cameras': ['left']}
-    assert merged['estimator']['export_on_shutdown'] is False
-    merged['detector']['x'] = 1
+    merged = merge_parameters({'sim': {'a': 1, 'b': 2}}, {'sim': {'b': 3}, 'selector': {'iterations': 3}})
+    assert merged == {'sim': {'a': 1, 'b': 3}, 'selector': {'iterations': 3}}
+    defaults = default_parameters()
+    defaults['detector']['x'] = 1
     assert 'x' not in default_parameters()['detector']
+
+
+def test_the_graph_runs_with_the_parameter_files_of_the_launcher() -> None:
+    params = default_parameters()
+    for key, (name, node) in PARAMS_FILES.items():
+        from_file = read_params_file(config_dir() / name, node)
+        kept = {k: v for k, v in from_file.items() if k not in ('cameras', 'use_sim_time')}
+        assert kept.items() <= params[key].items(), key
+    assert params['estimator']['iterations'] == 5            # the iterated EKF every run uses
+    # In process: sim as fast as possible, left eye, everything else on its clock, no export.
+    assert params['sim']['real_time_factor'] == 0.0 and params['sim']['cameras'] == ['left']
+    assert all(params[k]['use_sim_time'] for k in ('detector', 'estimator', 'selector'))
+    assert params['estimator']['export_on_shutdown'] is False
 
 
 def test_parameters_for_a_node_the_graph_lacks_are_refused(ros) -> None:

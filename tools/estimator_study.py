@@ -24,7 +24,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from active_selector.planner import PlannerSettings
-from active_selector.study import run_episode
+from tools.selector_study import run_episode
 from body_schema import load_robot, sampling
 from body_schema.ekf import nees
 from body_schema.map_estimator import MapEstimator, MapSettings

@@ -10,7 +10,6 @@ export of the calibrated model as a DH-table YAML with one-sigma uncertainties a
 """
 from __future__ import annotations
 
-import enum
 import os
 import tempfile
 from dataclasses import asdict, dataclass
@@ -24,20 +23,15 @@ from body_schema import ArmModel
 from body_schema import ekf as ekf_mod
 from body_schema.map_estimator import LOSSES, MapEstimator, MapSettings
 from body_schema.urdf import model_urdf
+from calibration_interfaces.dh_file import write_dh_file
+from calibration_interfaces.outcome import Outcome
+from calibration_interfaces.parameters import setting
 
-__all__ = ['Outcome', 'EstimatorSettings', 'OnlineEstimator', 'ESTIMATORS']
+__all__ = ['EstimatorSettings', 'OnlineEstimator', 'ESTIMATORS']
 
 #: Estimator back ends: the online MAP smoother (default) and the paper's EKF.
 ESTIMATORS = ('map', 'ekf')
-
-
-class Outcome(str, enum.Enum):
-    """What became of one offered observation."""
-
-    ACCEPTED = 'accepted'     # the estimate used it
-    OUTLIER = 'outlier'       # MAP: used under the robust loss, but beyond the outlier bound at the solution
-    REJECTED = 'rejected'     # EKF: outside the Mahalanobis gate; state unchanged
-    DUPLICATE = 'duplicate'   # same configuration as the previous attempt; not new evidence
+_MAP = MapSettings()
 
 
 @dataclass(frozen=True)
@@ -67,30 +61,42 @@ class EstimatorSettings:
         early gate would throw away the most informative samples.
     """
 
-    estimator: str = 'map'
-    q_length: float = 0.0
-    q_angle: float = 0.0
-    gate_probability: float = 0.999
-    iterations: int = 1
-    same_config_tol: float = 1e-3
-    gate_warmup: int = 10
-    loss: str = MapSettings.loss
-    loss_scale: float = MapSettings.loss_scale
-    outlier_probability: float = MapSettings.outlier_probability
-    window: int = MapSettings.window
-    change_probability: float = MapSettings.change_probability
-    change_window: int = MapSettings.change_window
-    jump_length: float = MapSettings.jump_length
-    jump_angle: float = MapSettings.jump_angle
-    max_nfev: int = MapSettings.max_nfev
+    estimator: str = setting('map', "Estimator: 'map' re-solves prior + observations after each one (robust "
+                                    "loss, adapts to a changing body); 'ekf' is the paper's filter",
+                             choices=ESTIMATORS)
+    q_length: float = setting(0.0, 'Random-walk (process-noise) variance per observation for a, d [m^2]', (0.0, 1.0))
+    q_angle: float = setting(0.0, 'Random-walk variance per observation for alpha, offset [rad^2]', (0.0, 1.0))
+    gate_probability: float = setting(0.999, 'EKF: chi-square gate probability (0 disables gating)', (0.0, 0.999999))
+    iterations: int = setting(1, "EKF: linearisations per update (1: the paper's EKF; >1: iterated EKF)", (1, 50))
+    same_config_tol: float = setting(1e-3, 'Closer than this to the previous attempt = same configuration [rad]',
+                                     (0.0, 0.5), name='same_config_tolerance')
+    gate_warmup: int = setting(10, 'EKF: accepted updates before the gate may reject', (0, 100000))
+    loss: str = setting(_MAP.loss, 'MAP: robust loss on the whitened residual', choices=LOSSES)
+    loss_scale: float = setting(_MAP.loss_scale, 'MAP: whitened residual where the robust loss departs from '
+                                                 'the square [sigma]', (0.1, 100.0))
+    outlier_probability: float = setting(_MAP.outlier_probability, 'MAP: chi-square probability (6 dof) beyond '
+                                                                   'which an observation is reported an outlier',
+                                         (0.5, 0.999999))
+    window: int = setting(_MAP.window, 'MAP: observations kept in the nonlinear problem, older ones folded into '
+                                       'the prior (0: all)', (0, 1000000))
+    change_probability: float = setting(_MAP.change_probability, 'MAP: chi-square probability (6 dof) an '
+                                        'innovation must exceed to count towards a body change (0: no change '
+                                        'detection)', (0.0, 0.999999))
+    change_window: int = setting(_MAP.change_window, 'MAP: innovations looked at by the change test', (1, 100))
+    change_count: int = setting(_MAP.change_count, 'MAP: of those, how many must exceed for a change', (1, 100))
+    jump_length: float = setting(_MAP.jump_length, 'MAP: standard deviation of a detected change for a, d [m]',
+                                 (1e-6, 1.0))
+    jump_angle: float = setting(_MAP.jump_angle, 'MAP: standard deviation of a detected change for alpha, '
+                                'offset [rad]', (1e-6, 3.2))
+    max_nfev: int = setting(_MAP.max_nfev, 'MAP: residual evaluations per re-solve', (1, 10000))
 
     def map_settings(self) -> MapSettings:
         """The MAP estimator's settings (validated there)."""
         return MapSettings(loss=self.loss, loss_scale=self.loss_scale,
                            outlier_probability=self.outlier_probability, max_nfev=self.max_nfev,
                            window=self.window, q_length=self.q_length, q_angle=self.q_angle,
-                           change_probability=self.change_probability,
-                           change_window=self.change_window, jump_length=self.jump_length,
+                           change_probability=self.change_probability, change_window=self.change_window,
+                           change_count=self.change_count, jump_length=self.jump_length,
                            jump_angle=self.jump_angle)
 
     def __post_init__(self) -> None:
@@ -277,25 +283,12 @@ class OnlineEstimator:
         return self.model.with_dh(self.dh)
 
     def export(self, directory: str | Path, stem: str = 'calibrated') -> tuple[Path, Path]:
-        """Write ``<stem>_dh.yaml`` (table with one-sigma) and ``<stem>.urdf``; return both paths."""
+        """Write ``<stem>_dh.yaml`` (table with one-sigma, :mod:`calibration_interfaces.dh_file`) and
+        ``<stem>.urdf``; return both paths."""
         directory = Path(directory)
-        directory.mkdir(parents=True, exist_ok=True)
         sigma = np.sqrt(np.diag(self.P)).reshape(self.model.dh.shape)
-        dh = self.dh
-        doc = {
-            'robot': self.model.name,
-            'convention': 'standard DH: H = Rz(q + offset) Tz(d) Tx(a) Rx(alpha); a, d in m; '
-                          'alpha, offset in deg',
-            'updates': self.counters,
-            'joints': [{
-                'name': name,
-                'dh': [float(dh[i, 0]), float(dh[i, 1]), float(np.degrees(dh[i, 2])), float(np.degrees(dh[i, 3]))],
-                'sigma': [float(sigma[i, 0]), float(sigma[i, 1]), float(np.degrees(sigma[i, 2])),
-                          float(np.degrees(sigma[i, 3]))],
-            } for i, name in enumerate(self.model.joint_names)],
-        }
-        yaml_path = directory / f'{stem}_dh.yaml'
-        yaml_path.write_text(yaml.safe_dump(doc, sort_keys=False))
+        yaml_path = write_dh_file(directory / f'{stem}_dh.yaml', self.dh, self.model.joint_names,
+                                  self.model.name, sigma, extra={'updates': self.counters})
         urdf_path = directory / f'{stem}.urdf'
         urdf_path.write_text(model_urdf(self.calibrated_model()))
         return yaml_path, urdf_path

@@ -9,7 +9,8 @@ from body_schema.noise import view_geometry
 from body_schema.robot import load_robot
 from body_schema.sampling import perturb_dh, uniform_configs
 from icub_sim_bridge.camera import degrade, gl_projection, project_points, refine_square_corners
-from icub_sim_bridge.world import SimWorld, aruco_dictionary, marker_texture
+from body_schema.markers import aruco_dictionary
+from icub_sim_bridge.world import SimWorld, marker_texture
 
 ROBOT = load_robot()
 
@@ -100,8 +101,11 @@ def test_default_render_has_no_bias(world) -> None:
 def test_higher_resolution_keeps_field_of_view(world) -> None:
     world.set_joint_positions(ROBOT.calibration_box.mean(axis=1))
     cam = ROBOT.camera_pose('left')
+    renders, seconds = world.renders, world.render_seconds
     small = world.render(cam, ROBOT.camera)
     big = world.render(cam, ROBOT.camera.scaled(640, 480))
+    # The timing hook counts both renders and the time they took.
+    assert world.renders == renders + 2 and world.render_seconds > seconds
     assert small.shape == (240, 320, 3) and big.shape == (480, 640, 3)
     assert small.flags['C_CONTIGUOUS'] and small.dtype == np.uint8
     down = cv2.resize(big, (320, 240), interpolation=cv2.INTER_AREA)

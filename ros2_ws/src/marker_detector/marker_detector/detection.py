@@ -30,13 +30,16 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
+from body_schema.kinematics import rotation_angle_deg
+from body_schema.markers import aruco_dictionary, marker_corners
 from body_schema.noise import NoiseModel, PoseDependentNoise, view_geometry
 from body_schema.robot import ArmModel, MarkerPlacement
+from calibration_interfaces.parameters import setting
 
 __all__ = [
     'FUSION_MODES', 'DetectorConfig', 'DetectedMarker', 'MarkerPose', 'HandEstimate',
-    'FrameResult', 'MarkerDetector', 'refine_corners_edges', 'marker_object_points', 'solve_marker_pose', 'gate_marker',
-    'hand_from_marker', 'fuse_estimates', 'refine_joint', 'HandPoseEstimator', 'rotation_angle_deg',
+    'FrameResult', 'MarkerDetector', 'refine_corners_edges', 'solve_marker_pose', 'gate_marker',
+    'hand_from_marker', 'fuse_estimates', 'refine_joint', 'HandPoseEstimator',
 ]
 
 #: How several accepted markers (or eyes) are combined into one hand pose:
@@ -71,15 +74,17 @@ class DetectorConfig:
         Then re-locate corners from fitted edge lines (:func:`refine_corners_edges`).
     """
 
-    max_reprojection_error_px: float = 1.0
-    ambiguity_ratio: float = 2.0
-    ambiguity_margin_px: float = 0.1
-    ambiguity_min_angle_deg: float = 8.0
-    refine_lm: bool = True
-    fusion: str = 'best'
-    min_side_px: float = 8.0
-    corner_refinement: bool = True
-    edge_refinement: bool = True
+    max_reprojection_error_px: float = setting(1.0, 'Reject a marker whose RMS corner reprojection error is '
+                                               'larger [px]', (0.0, 100.0))
+    ambiguity_ratio: float = setting(2.0, 'IPPE flip is ambiguous when alt_err < ratio * best_err + margin',
+                                     (1.0, 100.0))
+    ambiguity_margin_px: float = setting(0.1, 'Additive margin of the ambiguity test [px]', (0.0, 100.0))
+    ambiguity_min_angle_deg: float = setting(8.0, 'Solutions closer than this are not ambiguous [deg]', (0.0, 180.0))
+    refine_lm: bool = setting(True, 'Levenberg-Marquardt polish of the IPPE pose')
+    fusion: str = setting('best', 'Combining several accepted markers', choices=FUSION_MODES)
+    min_side_px: float = setting(8.0, 'Ignore markers with a shorter side [px]', (0.0, 1000.0))
+    corner_refinement: bool = setting(True, "ArUco's sub-pixel corner refinement (CORNER_REFINE_SUBPIX)")
+    edge_refinement: bool = setting(True, 'Corners from fitted edge lines (removes ArUco corner bias)')
 
     def __post_init__(self) -> None:
         if self.fusion not in FUSION_MODES:
@@ -219,9 +224,7 @@ class MarkerDetector:
 
     def __init__(self, dictionary: str, known_ids: Sequence[int], corner_refinement: bool = True,
                  min_side_px: float = 8.0, edge_refinement: bool = True) -> None:
-        code = getattr(cv2.aruco, dictionary, None)
-        if not isinstance(code, int) or not dictionary.startswith('DICT_'):
-            raise ValueError(f'dictionary: unknown ArUco dictionary {dictionary!r}')
+        aruco_dict = aruco_dictionary(dictionary)
         self.dictionary_name = dictionary
         self.known_ids = frozenset(int(i) for i in known_ids)
         self.min_side_px = float(min_side_px)
@@ -232,7 +235,6 @@ class MarkerDetector:
             params.cornerRefinementWinSize = 3
             params.cornerRefinementMinAccuracy = 0.01
             params.cornerRefinementMaxIterations = 50
-        aruco_dict = cv2.aruco.getPredefinedDictionary(code)
         self.cells = int(aruco_dict.markerSize) + 2 * int(params.markerBorderBits)
         self.edge_refinement = bool(edge_refinement)
         self._detect = _aruco_backend(aruco_dict, params)
@@ -416,31 +418,11 @@ def _fit_lines(e: NDArray[np.float64], mask: NDArray[np.float64]) -> tuple[NDArr
 # Single-marker pose
 
 
-def marker_object_points(side: float) -> NDArray[np.float64]:
-    """Corners of a marker of side ``side`` in its own frame, shape (4, 3), OpenCV order."""
-    h = side / 2.0
-    return np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
-
-
 def _to_matrix(rvec: ArrayLike, tvec: ArrayLike) -> NDArray[np.float64]:
     t = np.eye(4)
     t[:3, :3] = cv2.Rodrigues(np.asarray(rvec, dtype=float).reshape(3, 1))[0]
     t[:3, 3] = np.asarray(tvec, dtype=float).reshape(3)
     return t
-
-
-def rotation_angle_deg(r_a: ArrayLike, r_b: ArrayLike) -> NDArray[np.float64]:
-    """Geodesic angle between rotations, shape (...) [deg]; inputs (..., 3, 3).
-
-    ``atan2(|vee(R - R^T)| / 2, (tr R - 1) / 2)`` of ``R = R_a R_b^T``: accurate at every
-    angle (arccos of the trace alone loses precision near 0 and 180 deg) and far cheaper than a
-    Rotation round trip, which matters at three calls per marker per frame.
-    """
-    rel = np.asarray(r_a, dtype=float) @ np.swapaxes(np.asarray(r_b, dtype=float), -1, -2)
-    vee = np.stack([rel[..., 2, 1] - rel[..., 1, 2], rel[..., 0, 2] - rel[..., 2, 0],
-                    rel[..., 1, 0] - rel[..., 0, 1]], axis=-1)
-    cos = (np.trace(rel, axis1=-2, axis2=-1) - 1.0) / 2.0
-    return np.degrees(np.arctan2(np.linalg.norm(vee, axis=-1) / 2.0, cos))
 
 
 def _rms_error(obj: NDArray[np.float64], img: NDArray[np.float64], t: NDArray[np.float64],
@@ -478,7 +460,7 @@ def solve_marker_pose(marker: DetectedMarker, side: float, k: ArrayLike,
     """
     k = np.asarray(k, dtype=float).reshape(3, 3)
     dist = np.zeros(5) if dist is None else np.asarray(dist, dtype=float).reshape(-1)
-    obj = marker_object_points(side)
+    obj = marker_corners(side)
     img = np.asarray(marker.corners, dtype=float).reshape(4, 2)
     invalid = MarkerPose(marker.marker_id, img, np.full((4, 4), np.nan), None, np.inf, np.inf,
                          0.0, np.nan, np.nan, 'invalid')
@@ -600,7 +582,7 @@ def refine_joint(cam_T_hand0: ArrayLike, markers: Sequence[MarkerPose],
     """
     k = np.asarray(k, dtype=float).reshape(3, 3)
     dist = np.zeros(5) if dist is None else np.asarray(dist, dtype=float).reshape(-1)
-    obj_m = np.c_[marker_object_points(side), np.ones(4)]
+    obj_m = np.c_[marker_corners(side), np.ones(4)]
     obj = np.concatenate([(placements[m.marker_id].hand_T_marker @ obj_m.T).T[:, :3] for m in markers])
     img = np.concatenate([m.corners for m in markers])
     t0 = np.asarray(cam_T_hand0, dtype=float)

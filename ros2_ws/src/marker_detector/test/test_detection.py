@@ -12,9 +12,11 @@ from scipy.spatial.transform import Rotation
 from body_schema import load_robot
 from body_schema.noise import ConstantNoise, PoseDependentNoise, view_geometry
 from body_schema.robot import MarkerPlacement
+from body_schema.kinematics import rotation_angle_deg
+from body_schema.markers import marker_corners
 from marker_detector.detection import (DetectedMarker, DetectorConfig, HandPoseEstimator, MarkerDetector,
-                                       MarkerPose, gate_marker, hand_from_marker, marker_object_points,
-                                       refine_corners_edges, rotation_angle_deg, solve_marker_pose)
+                                       MarkerPose, gate_marker, hand_from_marker, refine_corners_edges,
+                                       solve_marker_pose)
 from marker_detector.synthetic import look_at_pose, render_markers
 
 K = np.array([[257.34, 0.0, 160.0], [0.0, 257.34, 120.0], [0.0, 0.0, 1.0]])
@@ -28,7 +30,7 @@ def model():
 
 
 def _project(pose: np.ndarray, k: np.ndarray = K) -> np.ndarray:
-    proj, _ = cv2.projectPoints(marker_object_points(SIDE), cv2.Rodrigues(pose[:3, :3])[0],
+    proj, _ = cv2.projectPoints(marker_corners(SIDE), cv2.Rodrigues(pose[:3, :3])[0],
                                 pose[:3, 3], k, np.zeros(5))
     return proj.reshape(4, 2)
 

@@ -5,7 +5,7 @@ the selected configuration, the detector's pure module estimates the hand pose, 
 pure module updates, the planner learns the outcome. No motion is simulated (the arm is placed),
 so one iteration costs a render, a detection, an update and a selection. Used to choose gamma,
 delta, the arctan penalty and the occlusion kernel by measurement (``python -m
-active_selector.study --help``); the reported results always come from the real node graph.
+tools.selector_study --help``); the reported results always come from the real node graph.
 """
 from __future__ import annotations
 
@@ -23,9 +23,11 @@ from body_schema import ArmModel, load_robot, sampling
 from body_schema.acquisition import SelectorConfig
 from body_schema.metrics import PoseErrorEvaluator
 from body_schema.noise import ConstantNoise, NoiseModel, PoseDependentNoise
+from calibration_interfaces.outcome import Outcome
 from dh_estimator.estimator import EstimatorSettings, OnlineEstimator
 
-from .planner import Planner, PlannerSettings
+from active_selector.loop import CalibrationLoop, LoopSettings
+from active_selector.planner import Planner, PlannerSettings
 
 __all__ = ['EpisodeResult', 'run_episode', 'main']
 
@@ -45,6 +47,20 @@ class EpisodeResult:
     estimator: OnlineEstimator | None = None
 
 
+class _StepClock:
+    """Simulated seconds that pass only when the harness says so."""
+
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+    def advance(self, dt: float = 0.05) -> float:
+        self.t += dt
+        return self.t
+
+
 def run_episode(model: ArmModel, world: object, x0: np.ndarray,
                 settings: PlannerSettings, noise: NoiseModel, iterations: int,
                 start: np.ndarray, evaluator: PoseErrorEvaluator,
@@ -58,25 +74,32 @@ def run_episode(model: ArmModel, world: object, x0: np.ndarray,
     est = OnlineEstimator(model, x0, sampling.initial_covariance(model.n_joints), estimator_settings)
     planner = Planner(model, noise, settings)
     planner.start = start
+    clock = _StepClock()
+    loop = CalibrationLoop(planner, LoopSettings(iterations=iterations), clock)
+    loop.joint_state(clock(), start)
     pos, rot, mov = [evaluator(x0).position_mm], [evaluator(x0).orientation_deg], [0.0]
     used = []
     t0 = time.perf_counter()
-    for _ in range(iterations):
-        sel = planner.select(est.dh, est.P, cam)
-        theta = np.clip(sel.theta, model.limits[:, 0], model.limits[:, 1])
-        world.set_joint_positions(theta)
+    while not loop.done:
+        theta = loop.select(est.dh, est.P, cam)
+        world.set_joint_positions(theta)            # placed, not moved: it settles at once
+        for _ in range(2):
+            loop.joint_state(clock.advance(), theta)
         gray = cv2.cvtColor(world.render(cam, model.camera), cv2.COLOR_RGB2GRAY)
         res = detector.process(gray, k, None, cam)
-        outcome = 'failed'
-        if res.success:
-            outcome = est.offer(theta, res.hand.pose, res.hand.covariance).value
-            if outcome in ('accepted', 'outlier'):
+        it = loop.markers(clock.advance(loop.settings.settle_time), res.success)
+        if it is None:
+            outcome = est.offer(theta, res.hand.pose, res.hand.covariance)
+            if outcome in (Outcome.ACCEPTED, Outcome.OUTLIER):
                 used.append((theta, res.hand.pose, res.hand.covariance))
-        a = planner.record(theta, theta, outcome, res.success, sel.seconds)
+            it = loop.estimator_outcome(outcome.value, theta)
+        if it is None:                              # not a final verdict (duplicate): the node times out
+            clock.advance(2 * loop.settings.outcome_timeout)
+            it = loop.tick()
         e = evaluator(est.dh)
         pos.append(e.position_mm)
         rot.append(e.orientation_deg)
-        mov.append(a.movement_deg)
+        mov.append(it.attempt.movement_deg)
     return EpisodeResult(pos, rot, mov, planner.discarded, time.perf_counter() - t0, used, est)
 
 

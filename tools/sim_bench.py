@@ -1,4 +1,4 @@
-"""Benchmark of the simulator (``make bench`` / ``python -m calibration_bringup.bench icub_sim_bridge``).
+"""Benchmark of the simulator (``make bench`` / ``python -m tools.bench icub_sim_bridge``).
 
 Measures camera frames per second (render + bytes, as the node publishes them) at 320x240 and
 640x480, physics steps per second (motion update + step), the sim-time / wall-time factor of the
@@ -14,8 +14,8 @@ import numpy as np
 from body_schema.robot import load_robot
 from body_schema.sampling import uniform_configs
 
-from .motion import TrajectoryFollower, Waypoints
-from .world import SimWorld
+from icub_sim_bridge.motion import TrajectoryFollower, Waypoints
+from icub_sim_bridge.world import SimWorld
 
 __all__ = ['main']
 
@@ -42,7 +42,7 @@ def _node_factor(seconds: float = 4.0) -> tuple[float, int, float]:
     from rclpy.parameter import Parameter
     from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-    from .sim_node import SimNode
+    from icub_sim_bridge.sim_node import SimNode
 
     robot = load_robot()
     ctx = Context()
@@ -74,7 +74,7 @@ def _node_factor(seconds: float = 4.0) -> tuple[float, int, float]:
 
 
 def main(argv: list[str] | None = None) -> str:
-    from .visibility import measure_visibility
+    from icub_sim_bridge.visibility import measure_visibility
 
     robot = load_robot()
     rows = []

@@ -80,7 +80,7 @@ def replay(directory: Path, variants: dict[str, MapSettings]) -> str:
 #: Robust losses compared by ``--replay`` (name -> settings).
 LOSS_VARIANTS = {f'{loss}, scale {scale:g}': MapSettings(loss=loss, loss_scale=scale)
                  for loss, scale in (('linear', 1.0), ('huber', 3.0), ('huber', 2.0), ('soft_l1', 2.0),
-                                     ('cauchy', 2.0), ('cauchy', 3.0), ('arctan', 3.0))}
+                                     ('cauchy', 2.0), ('cauchy', 3.0), ('cauchy', 4.0), ('arctan', 3.0))}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -54,6 +54,15 @@ __all__ = ['MapSettings', 'MapUpdate', 'MapEstimator', 'LOSSES']
 #: Robust losses of ``scipy.optimize.least_squares`` accepted by :class:`MapSettings`.
 LOSSES = ('linear', 'huber', 'soft_l1', 'cauchy', 'arctan')
 
+#: IRLS weight ``rho'(z)`` of each loss at ``z = (f / scale)^2`` (scipy's definitions).
+_IRLS_WEIGHT = {
+    'linear': lambda z: np.ones_like(z),
+    'huber': lambda z: np.where(z <= 1.0, 1.0, 1.0 / np.sqrt(np.maximum(z, 1.0))),
+    'soft_l1': lambda z: 1.0 / np.sqrt(1.0 + z),
+    'cauchy': lambda z: 1.0 / (1.0 + z),
+    'arctan': lambda z: 1.0 / (1.0 + z ** 2),
+}
+
 
 @dataclass(frozen=True)
 class MapSettings:
@@ -435,7 +444,17 @@ class MapEstimator:
             raise FilterError(f'MAP re-solve failed: {exc}') from exc
         if not np.all(np.isfinite(res.x)):
             raise FilterError('MAP re-solve produced a non-finite estimate')
-        info = res.jac.T @ res.jac
+        # Posterior information: Gauss-Newton at the solution. Observations the solution explains
+        # (within the outlier bound) count in full, as Gaussian evidence; only outliers keep their
+        # robust (IRLS) weight. scipy's robust-scaled Jacobian would also shrink the weight of
+        # 1-2 sigma residuals and so overstate the uncertainty.
+        jr = jac(res.x)
+        r = fun(res.x)[self.n:].reshape(-1, 6)
+        weights = np.ones_like(r)
+        outlier = np.einsum('ni,ni->n', r, r) > self._outlier_bound
+        weights[outlier] = _IRLS_WEIGHT[s.loss]((r[outlier] / s.loss_scale) ** 2)
+        jo = jr[self.n:] * np.sqrt(weights.reshape(-1, 1))
+        info = jr[:self.n].T @ jr[:self.n] + jo.T @ jo
         try:
             c = np.linalg.cholesky(info)
         except np.linalg.LinAlgError as exc:

@@ -35,14 +35,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from body_schema import load_robot, sampling
-from body_schema.metrics import PoseErrorEvaluator
+from body_schema.map_estimator import LOSSES
+from body_schema.metrics import PoseErrorEvaluator, expected_pose_errors
 from body_schema.noise import NOISE_MODELS
 from calibration_interfaces import mcap_reader
 from calibration_interfaces.messages import msg_to_covariance, msg_to_table
 from calibration_interfaces.noise import NoiseSettings
 from calibration_interfaces.parameters import read_params_file
 
-from .estimator import EstimatorSettings, OnlineEstimator
+from .estimator import ESTIMATORS, EstimatorSettings, OnlineEstimator
 from .node_settings import settings_from_parameters
 from .pairing import MessageError, MessageFeeder, ObservationPairer, PairingSettings
 
@@ -103,6 +104,10 @@ class IterationRow:
     offline_updates: int
     selection_s: float
     sim_time: float
+    # The information limit: the errors the offline posterior covariance implies over the box
+    # (body_schema.metrics.expected_pose_errors), to set beside the achieved ones.
+    expected_position_mm: float = float('nan')
+    expected_orientation_deg: float = float('nan')
 
 
 @dataclass
@@ -197,7 +202,7 @@ def evaluate_bag(path: str | Path, settings: EvaluationSettings = EvaluationSett
                 raise BagFormatError(f'{path}: iteration {record.get("iteration")} recorded before any '
                                      'initial estimate and covariance; use initial=perturbed with its seed')
             progress.append((record, estimator.dh.copy(), None if online is None else online.copy(),
-                             estimator.counters['updates']))
+                             estimator.counters['updates'], estimator.P.copy()))
         else:
             if estimator is None:
                 if x0 is not None and P0 is not None:
@@ -222,15 +227,19 @@ def evaluate_bag(path: str | Path, settings: EvaluationSettings = EvaluationSett
         e = evaluator(dh)
         return e.position_mm, e.orientation_deg
 
+    def limit(dh: NDArray[np.float64], P: NDArray[np.float64]) -> tuple[float, float]:  # noqa: N803
+        e = expected_pose_errors(model.base, dh, P, model.calibration_box)
+        return e.position_mm, e.orientation_deg
+
     p0, o0 = score(x0)
-    rows = [IterationRow(0, 'initial', False, 0.0, 0, p0, o0, p0, o0, 0, 0.0, 0.0)]
-    for record, dh, online_dh, n_updates in progress:
+    rows = [IterationRow(0, 'initial', False, 0.0, 0, p0, o0, p0, o0, 0, 0.0, 0.0, *limit(x0, P0))]
+    for record, dh, online_dh, n_updates, P in progress:  # noqa: N806
         pos, ori = score(dh)
         opos, oori = score(online_dh)
         rows.append(IterationRow(int(record['iteration']), str(record['outcome']), bool(record['detected']),
                                  float(record['movement_deg']), int(record['discarded']), pos, ori, opos, oori,
                                  n_updates, float(record.get('selection_s', 0.0)),
-                                 float(record.get('sim_time', 0.0))))
+                                 float(record.get('sim_time', 0.0)), *limit(dh, P)))
     return Evaluation(rows, estimator.dh.copy(), x0 if online is None else online, true_dh,
                       estimator.counters, strategy)
 
@@ -267,9 +276,11 @@ def plot_rows(rows: Sequence[IterationRow], directory: str | Path, title: str = 
     for x, xlabel, name in ((it, 'iteration', 'error_vs_iteration.png'),
                             (mv, 'accumulated joint movement [deg]', 'error_vs_movement.png')):
         fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), constrained_layout=True)
-        for ax, (label, (offline, online)) in zip(axes, series.items()):
+        limits = ([r.expected_position_mm for r in rows], [r.expected_orientation_deg for r in rows])
+        for ax, (label, (offline, online)), limit in zip(axes, series.items(), limits):
             ax.semilogy(x, offline, '-o', ms=3, label='offline re-run')
             ax.semilogy(x, online, '--', lw=1, label='online estimate')
+            ax.semilogy(x, limit, ':', lw=1.5, color='tab:green', label='information limit (from P)')
             if failed.any():
                 ax.plot(x[failed], np.asarray(offline)[failed], 'x', color='tab:red', label='discarded sample')
             ax.set_xlabel(xlabel)
@@ -287,12 +298,16 @@ def plot_rows(rows: Sequence[IterationRow], directory: str | Path, title: str = 
 def summary_text(ev: Evaluation) -> str:
     """A few lines: initial and final errors, movement, discarded samples, online/offline agreement."""
     first, last = ev.rows[0], ev.rows[-1]
-    return (f'iterations {last.iteration} ({ev.strategy or "unknown strategy"}), updates {ev.counters["updates"]}, '
-            f'rejected {ev.counters["rejected"]}, discarded samples {last.discarded}\n'
+    c = ev.counters
+    return (f'iterations {last.iteration} ({ev.strategy or "unknown strategy"}), updates {c["updates"]}, '
+            f'rejected {c["rejected"]}, outliers {c.get("outliers", 0)}, body changes detected '
+            f'{c.get("changes", 0)}, discarded samples {last.discarded}\n'
             f'position error    {first.position_mm:8.2f} mm  -> {last.position_mm:7.2f} mm '
             f'(online {last.online_position_mm:.2f} mm)\n'
             f'orientation error {first.orientation_deg:8.2f} deg -> {last.orientation_deg:7.2f} deg '
             f'(online {last.online_orientation_deg:.2f} deg)\n'
+            f'information limit {last.expected_position_mm:.2f} mm, {last.expected_orientation_deg:.2f} deg '
+            '(the error the final covariance implies over the calibration box)\n'
             f'accumulated movement {last.movement_deg:.0f} deg; max |offline - online| DH difference '
             f'{ev.max_online_offline_difference:.2e}')
 
@@ -312,15 +327,18 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument('--noise-model', choices=list(NOISE_MODELS))
     ap.add_argument('--cn-sigma-pos', type=float, help='[m]')
     ap.add_argument('--cn-sigma-rot-deg', type=float, help='[deg]')
-    ap.add_argument('--iterations', type=int, help='linearisations per update')
+    ap.add_argument('--estimator', choices=list(ESTIMATORS), help="'map' (online MAP) or 'ekf' (the paper's)")
+    ap.add_argument('--loss', choices=list(LOSSES), help='MAP robust loss')
+    ap.add_argument('--change-probability', type=float, help='MAP change detection (0: off)')
+    ap.add_argument('--iterations', type=int, help='EKF linearisations per update')
     ap.add_argument('--gate-probability', type=float)
     ap.add_argument('--gate-warmup', type=int)
     ap.add_argument('--no-plots', action='store_true', help='write the CSV only')
     return ap
 
 
-_OVERRIDES = ('robot', 'initial_seed', 'noise_model', 'cn_sigma_pos', 'cn_sigma_rot_deg', 'iterations',
-              'gate_probability', 'gate_warmup')
+_OVERRIDES = ('robot', 'initial_seed', 'noise_model', 'cn_sigma_pos', 'cn_sigma_rot_deg', 'estimator', 'loss',
+              'change_probability', 'iterations', 'gate_probability', 'gate_warmup')
 
 
 def main(argv: Sequence[str] | None = None) -> int:

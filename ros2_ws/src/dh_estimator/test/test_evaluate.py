@@ -25,7 +25,7 @@ from body_schema.noise import PoseDependentNoise
 from calibration_bringup.mcap_writer import McapBagWriter
 from calibration_interfaces.messages import covariance_to_msg, matrix_to_pose_msg, pose_msg_to_matrix, table_to_msg
 from dh_estimator.estimator import OnlineEstimator
-from dh_estimator.evaluate import (BagFormatError, EvaluationSettings, IterationRow, evaluate_bag, main,
+from dh_estimator.evaluate import (BagFormatError, EvaluationSettings, IterationRow, evaluate_bag, main, summary_text,
                                    write_csv)
 
 MODEL = load_robot('icub_right_arm')
@@ -134,6 +134,11 @@ def test_the_offline_run_reproduces_the_filter_and_the_online_estimate(tmp_path:
     assert [r.position_mm for r in rows] == pytest.approx([r.online_position_mm for r in rows], abs=1e-6)
     # Exact poses of the true robot: five updates already lower the error of the initial guess.
     assert rows[-1].position_mm < rows[0].position_mm
+    # The information limit shrinks with every update and stays put at the failed iteration.
+    limits = [r.expected_position_mm for r in rows]
+    assert all(np.isfinite(limits)) and limits[-1] < 0.5 * limits[0]
+    assert limits[FAILED] == limits[FAILED - 1]
+    assert 'information limit' in summary_text(ev)
 
 
 def test_initial_guess_choices_and_the_csv(tmp_path: Path) -> None:

@@ -10,7 +10,7 @@ error (mean, median, std, min, max), the ratio to the batch solution, NEES of th
 (28 parameters) with its 95% chi-square band, outliers flagged. Each run's observations are saved
 (``observations_<estimator>_<seed>.npz``: q, pose, R, true_dh, x0) for offline comparisons.
 
-    python tools/estimator_study.py --seeds 20 --iterations 50 --output results/estimator_study
+    python -m tools.estimator_study --seeds 20 --iterations 50 --output results/estimator_study
 """
 from __future__ import annotations
 

@@ -8,9 +8,9 @@ Subcommands (each prints a markdown table and writes JSON under ``--output``):
                  error, and the price on a body that does not change, per forgetting setting.
 ``timing``       seconds of one MAP update after 50 and 500 observations.
 
-    python tools/map_study.py consistency --seeds 30
-    python tools/map_study.py adaptation --seeds 20
-    python tools/map_study.py timing
+    python -m tools.map_study consistency --seeds 30
+    python -m tools.map_study adaptation --seeds 20
+    python -m tools.map_study timing
 """
 from __future__ import annotations
 

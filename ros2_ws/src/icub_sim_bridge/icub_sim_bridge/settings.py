@@ -24,6 +24,11 @@ class SimSettings:
                                 'uniformly with this seed', (-1, 2**31 - 1))
     perturb_width_length: float = setting(0.004, 'Full width of the a, d perturbation [m]', (0.0, 0.1))
     perturb_width_angle_deg: float = setting(2.0, 'Full width of the alpha, offset perturbation [deg]', (0.0, 60.0))
+    body_change: str = setting('', 'A change of the real robot applied mid-run, e.g. "r_wrist_prosup.d+0.010 '
+                               'r_shoulder_yaw.offset+3" (m, deg); empty = none (icub_sim_bridge.body_change)')
+    body_change_at_command: int = setting(0, 'Apply body_change when this /arm/command arrives (1 = the first), '
+                                          'before moving; 0 = only through the ~/apply_body_change service',
+                                          (0, 1000000))
     physics_step: float = setting(0.005, 'Fixed physics time step [s]; at most 1/joint_state_rate', (1e-4, 0.02))
     real_time_factor: float = setting(1.0, 'Sim seconds per wall second; 0 runs as fast as possible', (0.0, 100.0))
     joint_state_rate: float = setting(50.0, '/joint_states and /clock rate [Hz, sim time]', (50.0, 1000.0))

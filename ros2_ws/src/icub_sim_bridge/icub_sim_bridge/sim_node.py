@@ -16,7 +16,8 @@ Topics published
 /camera/{left,right}/pose : geometry_msgs/PoseStamped
     Optical frame in ``root_link``; transient local (the head holds still).
 /body_schema/true : std_msgs/Float64MultiArray
-    The simulated robot's real DH table, 7 x 4 (a, d, alpha, offset); transient local.
+    The simulated robot's real DH table, 7 x 4 (a, d, alpha, offset); transient local;
+    published again when the body changes.
 
 Topics subscribed
 -----------------
@@ -25,11 +26,17 @@ Topics subscribed
     holds where it is) for unknown or repeated names, NaN/inf, no points, a wrong number of
     positions, or targets outside the joint limits.
 
+Services
+--------
+~/apply_body_change : std_srvs/Trigger
+    Applies ``body_change`` now (once): the real robot changes, ``/body_schema/true`` follows.
+
 Parameters
 ----------
 Declared (read-only) from :class:`icub_sim_bridge.settings.SimSettings`: robot, the real robot
 (``true_dh_file``: any DH file of :mod:`calibration_interfaces.dh_file`, e.g. the estimator's
-exported ``calibrated_dh.yaml``; ``perturb_seed``), timing, cameras, image degradation and
+exported ``calibrated_dh.yaml``; ``perturb_seed``), a change of that robot mid-run
+(``body_change``, ``body_change_at_command``), timing, cameras, image degradation and
 markers. The README's table lists them with defaults and ranges; ``config/sim.yaml`` sets a
 run's values.
 """
@@ -49,6 +56,7 @@ from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import CameraInfo, Image, JointState
 from std_msgs.msg import Float64MultiArray
+from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
 from body_schema.robot import load_robot
@@ -58,6 +66,7 @@ from calibration_interfaces.dh_file import read_dh_file
 from calibration_interfaces.messages import matrix_to_pose_msg, table_to_msg
 from calibration_interfaces.node_util import declare_settings, qos_profile
 
+from .body_change import parse_body_change
 from .camera import degrade
 from .motion import CommandError, TrajectoryFollower, validate_command
 from .settings import SimSettings
@@ -93,6 +102,10 @@ class SimNode(Node):
             true_dh = perturb_dh(true_dh, s.perturb_seed, s.perturb_width_length,
                                  np.radians(s.perturb_width_angle_deg))
         self.true_dh = true_dh
+        # A scheduled (or requested) change of that robot; parsed now so a bad spec fails at start.
+        self.body_change = parse_body_change(s.body_change, r.joint_names) if s.body_change else None
+        self.body_changed = False
+        self.commands = 0
         head = np.radians(np.asarray(s.head_pose_deg, dtype=float)) if s.head_pose_deg else r.eyes.head_pose
         if head.shape != (5,):
             raise ValueError(f'head_pose_deg needs 5 angles, got {list(s.head_pose_deg)}')
@@ -138,6 +151,7 @@ class SimNode(Node):
                 pubs[eye] = self.create_publisher(cls, f'/camera/{eye}/{suffix}', qos_profile(f'/camera/{eye}/{suffix}'))
         # A volatile subscription also takes the selector's latched command.
         self.create_subscription(JointTrajectory, '/arm/command', self._on_command, qos_profile(RELIABLE))
+        self.create_service(Trigger, '~/apply_body_change', self._on_apply_body_change)
         self._publish_latched()
 
         # The loop runs on the wall clock (sim time only advances because of it).
@@ -229,7 +243,37 @@ class SimNode(Node):
         if behind >= self._step_ns:
             self.advance(behind - behind % self._step_ns)
 
+    def apply_body_change(self) -> str:
+        """Change the real robot by ``body_change`` (once) and publish its new table.
+
+        Raises
+        ------
+        RuntimeError
+            If there is no change to apply, or it was applied already.
+        """
+        if self.body_change is None:
+            raise RuntimeError('no body_change parameter set')
+        if self.body_changed:
+            raise RuntimeError('the body change was applied already')
+        self.true_dh = self.true_dh + self.body_change
+        self.world.set_dh(self.true_dh)
+        self.body_changed = True
+        self.pub_true.publish(table_to_msg(self.true_dh))
+        text = f'the real robot changed ({self.settings.body_change}) at sim time {self.sim_ns / 1e9:.3f} s'
+        self.get_logger().warning(text)
+        return text
+
+    def _on_apply_body_change(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        try:
+            response.message, response.success = self.apply_body_change(), True
+        except RuntimeError as exc:
+            response.message, response.success = str(exc), False
+        return response
+
     def _on_command(self, msg: JointTrajectory) -> None:
+        self.commands += 1
+        if self.commands == self.settings.body_change_at_command and self.body_change is not None:
+            self.apply_body_change()
         try:
             wp = validate_command(msg.joint_names, [list(p.positions) for p in msg.points],
                                   [p.time_from_start.sec + p.time_from_start.nanosec * 1e-9 for p in msg.points],

@@ -210,6 +210,7 @@ class SimWorld:
                 raise ValueError(f'marker {spec.placement.name!r}: printed side {spec.quad_side:.4f} m '
                                  f'(with quiet zone) does not fit on the {HAND_SIZE[:2]} m palm')
         self.physics_step = float(physics_step)
+        self.head_pose: NDArray[np.float64] | None = None
         self.renders = 0
         self.render_seconds = 0.0
         self._tmp = tempfile.mkdtemp(prefix='icub_sim_')
@@ -247,7 +248,10 @@ class SimWorld:
         urdf = dh_chain_urdf(self.dh, names, self.robot.limits, base=self.robot.base,
                              name=self.robot.name, root_link=self.robot.root_frame,
                              visuals=visuals, extra_links=extra, link_mass=0.01)
-        path = os.path.join(self._tmp, 'arm.urdf')
+        # A new file name per build: PyBullet caches what it loaded under a file name, so a rebuilt
+        # arm (set_dh) under the old name would come back with the old geometry.
+        self._builds = getattr(self, '_builds', 0) + 1
+        path = os.path.join(self._tmp, f'arm_{self._builds}.urdf')
         with open(path, 'w') as f:
             f.write(urdf)
         self.body = c.loadURDF(path, useFixedBase=True, flags=p.URDF_USE_INERTIA_FROM_FILE)
@@ -286,8 +290,26 @@ class SimWorld:
         if self.robot.eyes is not None and 'left' in self.robot.eyes.links:
             self.set_head_pose(self.robot.eyes.head_pose if head_pose is None else head_pose)
 
+    def set_dh(self, dh: ArrayLike) -> None:
+        """Rebuild the arm with another DH table (a body that changed), keeping its joint positions.
+
+        Parameters
+        ----------
+        dh : array_like, shape (L, 4)
+            The new real table.
+        """
+        dh = np.array(dh, dtype=float)
+        if dh.shape != self.robot.dh.shape or not np.all(np.isfinite(dh)):
+            raise ValueError(f'dh must be a finite table of shape {self.robot.dh.shape}, got {dh.tolist()}')
+        q = self.joint_positions()
+        self._client.resetSimulation()
+        self.dh = dh
+        self._build(self.head_pose)
+        self.set_joint_positions(q)
+
     def set_head_pose(self, head_pose: ArrayLike) -> None:
         """Place the static head geometry for head joints ``head_pose`` (5,) [rad]."""
+        self.head_pose = np.array(head_pose, dtype=float)
         c = self._client
         left = self.robot.camera_pose('left', head_pose)
         # A 12 x 10 x 10 cm skull just behind the eyes (never in front: the cameras sit there).

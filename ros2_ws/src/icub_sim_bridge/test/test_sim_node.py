@@ -258,3 +258,42 @@ def test_a_missing_dh_file_is_named(ros, tmp_path) -> None:
 
     with pytest.raises(DhFileError, match='nope.yaml'):
         make_sim(ros, true_dh_file=str(tmp_path / 'nope.yaml'))
+
+
+def test_the_body_changes_at_the_scheduled_command_and_the_truth_follows(ros) -> None:
+    """body_change applied when the 2nd command arrives: /body_schema/true re-published with the
+    increments, the rendered arm rebuilt, the arm still where it was; once only."""
+    from std_srvs.srv import Trigger
+
+    spec = 'r_wrist_prosup.d+0.010 r_shoulder_yaw.offset+3'
+    sim = make_sim(ros, body_change=spec, body_change_at_command=2, cameras=['left'])
+    probe = Probe(ros)
+    ros.spin_until(lambda: '/body_schema/true' in probe.last and '/joint_states' in probe.last, 10.0, 'truth')
+    before = np.array(probe.last['/body_schema/true'].data).reshape(7, 4)
+    q0 = probe.q()
+    probe.command(ROBOT.joint_names, [q0])                       # 1st command: nothing changes
+    ros.spin_until(lambda: sim.commands == 1, 10.0, 'the first command')
+    assert probe.count['/body_schema/true'] == 1 and not sim.body_changed
+    target = q0 + np.radians(2.0)
+    probe.command(ROBOT.joint_names, [target])                   # 2nd: the body changes, then it moves
+    ros.spin_until(lambda: probe.count['/body_schema/true'] == 2, 10.0, 'the changed truth')
+    after = np.array(probe.last['/body_schema/true'].data).reshape(7, 4)
+    expected = before.copy()
+    expected[4, 1] += 0.010
+    expected[2, 3] += np.radians(3.0)
+    np.testing.assert_allclose(after, expected, atol=1e-12)
+    np.testing.assert_allclose(sim.world.dh, expected, atol=1e-12)
+    ros.spin_until(lambda: np.abs(probe.q() - target).max() < 1e-9, 20.0, 'the arm at its target')
+    # The rebuilt world's hand is where the changed table puts it.
+    np.testing.assert_allclose(sim.world.hand_pose(), ROBOT.with_dh(expected).forward_kinematics(target), atol=1e-6)
+    # The service refuses a second application.
+    client = probe.node.create_client(Trigger, '/icub_sim/apply_body_change')
+    ros.spin_until(lambda: client.service_is_ready(), 10.0, 'the service')
+    future = client.call_async(Trigger.Request())
+    ros.spin_until(future.done, 10.0, 'the service reply')
+    assert not future.result().success and 'already' in future.result().message
+
+
+def test_a_bad_body_change_fails_at_start(ros) -> None:
+    with pytest.raises(ValueError, match='r_knee'):
+        make_sim(ros, body_change='r_knee.d+0.01')

@@ -137,3 +137,20 @@ def test_two_worlds_coexist() -> None:
         q = ROBOT.calibration_box[:, 0]
         a.set_joint_positions(q)
         assert not np.allclose(a.joint_positions(), b.joint_positions())
+
+
+def test_set_dh_rebuilds_the_arm_with_the_new_table() -> None:
+    """A changed body: the hand follows the new table at the same joints (PyBullet caches URDFs
+    by file name, so a rebuild under the old name would keep the old arm)."""
+    q = ROBOT.calibration_box.mean(axis=1)
+    changed = ROBOT.dh.copy()
+    changed[4, 1] += 0.010
+    changed[2, 3] += np.radians(3.0)
+    with SimWorld(ROBOT, head_pose=ROBOT.eyes.head_pose) as w:
+        w.set_joint_positions(q)
+        w.set_dh(changed)
+        np.testing.assert_allclose(w.joint_positions(), q, atol=1e-12)
+        np.testing.assert_allclose(w.hand_pose(), ROBOT.with_dh(changed).forward_kinematics(q), atol=1e-6)
+        assert w.render(ROBOT.camera_pose('left'), ROBOT.camera).shape == (ROBOT.camera.height, ROBOT.camera.width, 3)
+        with pytest.raises(ValueError, match='shape'):
+            w.set_dh(changed[:3])

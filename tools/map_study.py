@@ -32,20 +32,19 @@ from body_schema.synthetic import SyntheticRun
 
 #: Forgetting settings compared by ``adaptation`` (name -> MapSettings overrides).
 FORGETTING = {
-    'none': {},
-    'random walk 0.1 mm / 0.03 deg': {'q_length': 1e-8, 'q_angle': float(np.radians(0.03)) ** 2},
-    'random walk 0.3 mm / 0.1 deg': {'q_length': 9e-8, 'q_angle': float(np.radians(0.1)) ** 2},
-    'window 15': {'window': 15},
-    'change detection: 2 of 3 NIS beyond p=0.999': {'change_probability': 0.999},
-    'change detection: 2 of 3 beyond p=0.99': {'change_probability': 0.99},
-    'change detection: 3 of 4 beyond p=0.99': {'change_probability': 0.99, 'change_window': 4, 'change_count': 3},
-    'change detection: 2 of 2 beyond p=0.999': {'change_probability': 0.999, 'change_window': 2},
-    'change detection: 2 of 3 beyond p=0.999, jump 5 mm / 1.5 deg': {
-        'change_probability': 0.999, 'jump_length': 0.005, 'jump_angle': float(np.radians(1.5))},
-    'change detection: 2 of 3 beyond p=0.999, jump 30 mm / 10 deg': {
-        'change_probability': 0.999, 'jump_length': 0.03, 'jump_angle': float(np.radians(10.0))},
-    'change detection 2 of 3 beyond p=0.999 + random walk 0.1 mm / 0.03 deg': {
-        'change_probability': 0.999, 'q_length': 1e-8, 'q_angle': float(np.radians(0.03)) ** 2},
+    'none': {'change_probability': 0.0},
+    'random walk 0.1 mm / 0.03 deg': {'change_probability': 0.0, 'q_length': 1e-8,
+                                      'q_angle': float(np.radians(0.03)) ** 2},
+    'random walk 0.3 mm / 0.1 deg': {'change_probability': 0.0, 'q_length': 9e-8,
+                                     'q_angle': float(np.radians(0.1)) ** 2},
+    'window 15': {'change_probability': 0.0, 'window': 15},
+    'change detection: 2 of 3 NIS beyond p=0.99': {'change_probability': 0.99},
+    'change detection: 2 of 3 beyond p=0.999': {'change_probability': 0.999},
+    'change detection: 3 of 3 beyond p=0.999': {'change_probability': 0.999, 'change_count': 3},
+    'change detection: 2 of 3 beyond p=0.9999 (default)': {},
+    'default, jump 5 mm / 1.5 deg': {'jump_length': 0.005, 'jump_angle': float(np.radians(1.5))},
+    'default, jump 30 mm / 10 deg': {'jump_length': 0.03, 'jump_angle': float(np.radians(10.0))},
+    'default + random walk 0.1 mm / 0.03 deg': {'q_length': 1e-8, 'q_angle': float(np.radians(0.03)) ** 2},
 }
 
 

@@ -11,7 +11,7 @@ the observations and, after each new one, re-solves the whole problem
 by nonlinear least squares (``scipy.optimize.least_squares``, trust-region reflective),
 warm-started from the previous solution, so every observation is always linearised at the best
 current estimate. The posterior covariance is the inverse Gauss-Newton information at the
-solution. ``rho`` is a robust loss on the whitened residual (Huber by default): it replaces the
+solution. ``rho`` is a robust loss on the whitened residual (Cauchy by default): it replaces the
 EKF's hard chi-square gate. An observation whose whitened residual at the solution stays beyond
 the ``outlier_probability`` chi-square bound is reported as an outlier (counted, in the update
 report) but kept: if a later solution explains it, it stops being one.
@@ -89,20 +89,28 @@ class MapSettings:
         0 disables change detection.
     change_window, change_count : int
         A change is declared when ``change_count`` of the last ``change_window`` NIS exceed it.
+    warmup : int
+        Updates while the estimate is still far from the truth: the residuals of the first
+        observations of a paper-wide prior are tens of standard deviations because the estimate
+        is far, not because the data are bad. During the warm-up the loss is Huber (whose pull
+        does not vanish for large residuals; a redescending loss such as Cauchy would dismiss
+        every early observation as an outlier) and the change test does not fire (measured on
+        rendered runs: the only false alarms fell at observations 4-5).
     jump_length, jump_angle : float
         Standard deviation of the jump added when a change is detected [m], [rad].
     """
 
-    loss: str = 'huber'
+    loss: str = 'cauchy'
     loss_scale: float = 3.0
     outlier_probability: float = 0.999
     max_nfev: int = 30
     window: int = 0
     q_length: float = 0.0
     q_angle: float = 0.0
-    change_probability: float = 0.0
+    change_probability: float = 0.9999
     change_window: int = 3
     change_count: int = 2
+    warmup: int = 10
     jump_length: float = 0.01
     jump_angle: float = float(np.radians(3.0))
 
@@ -127,6 +135,8 @@ class MapSettings:
             raise ValueError(f'window must be 0 (all) or >= 2, got {self.window}')
         if self.change_window < 1:
             raise ValueError(f'change_window must be >= 1, got {self.change_window}')
+        if self.warmup < 0:
+            raise ValueError(f'warmup must be >= 0, got {self.warmup}')
         if not 1 <= self.change_count <= self.change_window:
             raise ValueError(f'change_count must be in [1, change_window={self.change_window}], '
                              f'got {self.change_count}')
@@ -353,7 +363,7 @@ class MapEstimator:
         change = False
         self._recent_nis = (self._recent_nis + [nis])[-s.change_window:]
         beyond = [v > self._change_bound for v in self._recent_nis]
-        if sum(beyond) >= s.change_count:
+        if self.n_updates >= s.warmup and sum(beyond) >= s.change_count:
             # The body changed: everything known so far (prior and stored observations) may be
             # off by a jump. The stored observations since the first exceedance are evidence of
             # the new body, so they are not aged.
@@ -437,8 +447,9 @@ class MapEstimator:
             return np.vstack([lp, -np.einsum('nij,njk->nik', w, J).reshape(-1, self.n)])
 
         s = self.settings
+        loss = s.loss if self.n_updates >= s.warmup else 'huber'
         try:
-            res = least_squares(fun, self.x, jac=jac, method='trf', loss=s.loss, f_scale=s.loss_scale,
+            res = least_squares(fun, self.x, jac=jac, method='trf', loss=loss, f_scale=s.loss_scale,
                                 max_nfev=max_nfev or s.max_nfev, x_scale='jac')
         except (ValueError, np.linalg.LinAlgError) as exc:
             raise FilterError(f'MAP re-solve failed: {exc}') from exc
@@ -452,7 +463,7 @@ class MapEstimator:
         r = fun(res.x)[self.n:].reshape(-1, 6)
         weights = np.ones_like(r)
         outlier = np.einsum('ni,ni->n', r, r) > self._outlier_bound
-        weights[outlier] = _IRLS_WEIGHT[s.loss]((r[outlier] / s.loss_scale) ** 2)
+        weights[outlier] = _IRLS_WEIGHT[loss]((r[outlier] / s.loss_scale) ** 2)
         jo = jr[self.n:] * np.sqrt(weights.reshape(-1, 1))
         info = jr[:self.n].T @ jr[:self.n] + jo.T @ jo
         try:

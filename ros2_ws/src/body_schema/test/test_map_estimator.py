@@ -77,19 +77,19 @@ def test_change_detection_follows_a_changed_body_and_stays_quiet_otherwise(arm):
     changed = _true(arm, 2).copy()
     changed[4, 1] += 0.010                             # forearm 10 mm longer
     changed[2, 3] += np.radians(3.0)                   # shoulder yaw offset +3 deg
-    settings = MapSettings(change_probability=0.999)
+    settings = MapSettings()                           # change detection is on by default
     true, obs, est, _ = _run(arm, 2, 60, settings, {30: changed})
     assert est.n_changes >= 1
     ev = PoseErrorEvaluator(arm.base, changed, arm.calibration_box, n=300)
     assert ev(est.x).position_mm < 2.0
-    without = _run(arm, 2, 60, MapSettings(), {30: changed})[2]
+    without = _run(arm, 2, 60, MapSettings(change_probability=0.0), {30: changed})[2]
     assert ev(without.x).position_mm > 2 * ev(est.x).position_mm
     quiet = _run(arm, 3, 60, settings)[2]
     assert quiet.n_changes == 0
 
 
 def test_one_gross_outlier_is_not_a_change(arm):
-    settings = MapSettings(change_probability=0.999)
+    settings = MapSettings(change_probability=0.999, warmup=0)
     true, obs, est, _ = _run(arm, 7, 20, settings)
     z = arm.with_dh(true).forward_kinematics(obs[0].q)
     z[:3, :3] = z[:3, :3] @ np.diag([-1.0, -1.0, 1.0])        # a flipped marker: 180 deg off

@@ -84,6 +84,8 @@ class EstimatorSettings:
                                         'detection)', (0.0, 0.999999))
     change_window: int = setting(_MAP.change_window, 'MAP: innovations looked at by the change test', (1, 100))
     change_count: int = setting(_MAP.change_count, 'MAP: of those, how many must exceed for a change', (1, 100))
+    warmup: int = setting(_MAP.warmup, 'MAP: updates with the Huber loss and no change test, while the estimate '
+                                       'is still far from the truth', (0, 100000))
     jump_length: float = setting(_MAP.jump_length, 'MAP: standard deviation of a detected change for a, d [m]',
                                  (1e-6, 1.0))
     jump_angle: float = setting(_MAP.jump_angle, 'MAP: standard deviation of a detected change for alpha, '
@@ -96,7 +98,8 @@ class EstimatorSettings:
                            outlier_probability=self.outlier_probability, max_nfev=self.max_nfev,
                            window=self.window, q_length=self.q_length, q_angle=self.q_angle,
                            change_probability=self.change_probability, change_window=self.change_window,
-                           change_count=self.change_count, jump_length=self.jump_length,
+                           change_count=self.change_count, warmup=self.warmup,
+                           jump_length=self.jump_length,
                            jump_angle=self.jump_angle)
 
     def __post_init__(self) -> None:

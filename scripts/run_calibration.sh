@@ -17,6 +17,10 @@ Runs one online calibration of the simulated iCub right arm and records it to MC
   --seed S          seed of the real robot, the initial guess and the selector (default: 1)
   --output DIR      where the bag, logs, model and report go            (default: results/run)
   --noise M         pose_dependent | constant (the paper's CN baseline) (default: pose_dependent)
+  --estimator E     map (online MAP smoother) | ekf (the paper's filter) (default: map)
+  --body-change SPEC  change the real robot mid-run, e.g. 'r_wrist_prosup.d+0.010 r_shoulder_yaw.offset+3'
+                    (joint.a|d [m] or joint.alpha|offset [deg], signed increments)
+  --body-change-at N  the iteration at whose command the body changes (default: half the iterations)
   --rtf F           simulated seconds per wall second; 0 = as fast as possible (default: 1.0)
   --image-size WxH  camera resolution, intrinsics scale with it         (default: 320x240)
   --no-images       do not record the camera images (smaller bag)
@@ -30,7 +34,8 @@ DH YAML and URDF), DIR/progress.jsonl and DIR/logs/<node>.log. Exit status 0 on 
 EOF
 }
 
-strategy=al; iterations=50; seed=1; output=results/run; noise=pose_dependent; rtf=1.0
+strategy=al; iterations=50; seed=1; output=results/run; noise=pose_dependent; rtf=1.0; estimator=map
+body_change=""; body_change_at=""
 image_size=320x240; record_images=1; domain_id=""; timeout=""
 while [ $# -gt 0 ]; do
   case "$1" in
@@ -39,6 +44,9 @@ while [ $# -gt 0 ]; do
     --seed) seed=$2; shift 2 ;;
     --output) output=$2; shift 2 ;;
     --noise) noise=$2; shift 2 ;;
+    --estimator) estimator=$2; shift 2 ;;
+    --body-change) body_change=$2; shift 2 ;;
+    --body-change-at) body_change_at=$2; shift 2 ;;
     --rtf) rtf=$2; shift 2 ;;
     --image-size) image_size=$2; shift 2 ;;
     --no-images) record_images=0; shift ;;
@@ -52,12 +60,16 @@ done
 die() { echo "run_calibration: $*" >&2; exit 2; }
 case "$strategy" in random|al|ucsal|ccsal) ;; *) die "--strategy must be random, al, ucsal or ccsal, got '$strategy'" ;; esac
 case "$noise" in pose_dependent|constant) ;; *) die "--noise must be pose_dependent or constant, got '$noise'" ;; esac
+case "$estimator" in map|ekf) ;; *) die "--estimator must be map or ekf, got '$estimator'" ;; esac
 [[ "$iterations" =~ ^[1-9][0-9]*$ ]] || die "--iterations must be a positive integer, got '$iterations'"
 [[ "$seed" =~ ^[0-9]+$ ]] || die "--seed must be a non-negative integer, got '$seed'"
 [[ "$image_size" =~ ^([0-9]+)x([0-9]+)$ ]] || die "--image-size must look like 640x480, got '$image_size'"
 width=${BASH_REMATCH[1]}; height=${BASH_REMATCH[2]}
 [[ "$rtf" =~ ^[0-9]*\.?[0-9]+$ ]] || die "--rtf must be a non-negative number, got '$rtf'"
 timeout=${timeout:-$((60 + 20 * iterations))}
+body_change_at=${body_change_at:-$(( (iterations + 1) / 2 + 1 ))}
+[[ "$body_change_at" =~ ^[1-9][0-9]*$ ]] || die "--body-change-at must be a positive integer, got '$body_change_at'"
+[ -n "$body_change" ] || body_change_at=0
 
 # --- Where the executables and parameter files are ----------------------------------------
 repo=$(cd "$(dirname "$0")/.." && pwd)
@@ -141,8 +153,9 @@ fail() {    # fail NAME WHY: the node's log tail, stop everything, exit 1
 recorder_args=(-p "output:=$bag")
 [ "$record_images" = 1 ] || recorder_args+=(-p "exclude_images:=true")
 
-echo "run_calibration: $strategy, $iterations iterations, seed $seed, noise $noise, ${width}x${height}," \
-     "rtf $rtf, ROS_DOMAIN_ID $ROS_DOMAIN_ID -> $output"
+echo "run_calibration: $strategy, $iterations iterations, seed $seed, noise $noise, estimator $estimator," \
+     "${width}x${height}, rtf $rtf, ROS_DOMAIN_ID $ROS_DOMAIN_ID -> $output"
+[ -z "$body_change" ] || echo "run_calibration: the real robot changes by '$body_change' at iteration $body_change_at"
 wall0=$SECONDS
 # The recorder first, so every latched fact (true table, initial estimate, camera poses) is in the bag.
 start recorder calibration_bringup recorder_node --ros-args --params-file "$config/recorder.yaml" \
@@ -150,10 +163,11 @@ start recorder calibration_bringup recorder_node --ros-args --params-file "$conf
 for ((t = 0; t < 200; t++)); do [ -s "$bag" ] && break; alive recorder || fail recorder "exited at start"; sleep 0.1; done
 [ -s "$bag" ] || fail recorder "did not open $bag within 20 s"
 start sim icub_sim_bridge sim_node --ros-args --params-file "$config/sim.yaml" \
-  -p "perturb_seed:=$seed" -p "real_time_factor:=$rtf" -p "image_width:=$width" -p "image_height:=$height"
+  -p "perturb_seed:=$seed" -p "real_time_factor:=$rtf" -p "image_width:=$width" -p "image_height:=$height" \
+  -p "body_change:=$body_change" -p "body_change_at_command:=$body_change_at"
 start detector marker_detector detector_node --ros-args --params-file "$config/detector.yaml"
 start estimator dh_estimator estimator_node --ros-args --params-file "$config/estimator.yaml" \
-  -p "initial_seed:=$seed" -p "noise_model:=$noise" \
+  -p "initial_seed:=$seed" -p "noise_model:=$noise" -p "estimator:=$estimator" \
   -p "export_dir:=$output/model"
 start selector active_selector selector_node --ros-args --params-file "$config/selector.yaml" \
   -p "strategy:=$strategy" -p "iterations:=$iterations" -p "seed:=$seed" -p "noise_model:=$noise" \
@@ -188,5 +202,5 @@ echo "run_calibration: finished in ${wall} s; writing the report"
 calibration_cmd=$(command_of calibration_bringup calibration_report)
 # shellcheck disable=SC2086  # the command line is words on purpose (ros2 run pkg exe)
 $calibration_cmd --bag "$bag" --output "$output" --wall-seconds "$wall" \
-  --title "$strategy, $iterations iterations, seed $seed, noise $noise, ${width}x${height}" \
-  --params-file "$config/estimator.yaml" --noise-model "$noise"
+  --title "$strategy, $iterations iterations, seed $seed, noise $noise, estimator $estimator, ${width}x${height}" \
+  --params-file "$config/estimator.yaml" --noise-model "$noise" --estimator "$estimator"

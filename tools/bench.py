@@ -16,6 +16,7 @@ BENCHMARKS: dict[str, tuple[str, list[str]]] = {
     'body_schema': ('tools.kinematics_bench', []),
     'icub_sim_bridge': ('tools.sim_bench', []),
     'marker_detector': ('tools.detector_bench', []),
+    'dh_estimator': ('tools.map_bench', []),
     'active_selector': ('tools.loop_bench', []),
     # 640x480 frames between processes, default Fast DDS vs the shipped shared-memory profile.
     'transport': ('tools.transport_bench', ['--profile', 'default', '--profile', 'shm']),

@@ -17,6 +17,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from dh_estimator.estimator import ESTIMATORS
 from dh_estimator.evaluate import (Evaluation, EvaluationSettings, evaluate_bag, plot_rows, summary_text,
                                    write_csv)
 
@@ -91,12 +92,16 @@ def main(argv: Sequence[str] | None = None) -> int:
                          "default: this package's config/estimator.yaml, which scripts/run_calibration.sh uses")
     ap.add_argument('--noise-model', choices=list(NOISE_MODELS),
                     help="the estimator's noise_model during the run, if the launcher overrode the file's")
+    ap.add_argument('--estimator', choices=list(ESTIMATORS),
+                    help="the estimator during the run, if the launcher overrode the file's")
     args = ap.parse_args(argv)
     out = args.output or args.bag.parent
     try:
         values = dict(read_params_file(args.params_file or estimator_params_file(), 'dh_estimator'))
         if args.noise_model is not None:
             values['noise_model'] = args.noise_model
+        if args.estimator is not None:
+            values['estimator'] = args.estimator
         ev = evaluate_bag(args.bag, EvaluationSettings.from_parameters(values))
         write_csv(ev.rows, out / 'metrics.csv')
         plot_rows(ev.rows, out, title=args.title)

@@ -28,6 +28,9 @@ ARGUMENTS: dict[str, tuple[str, str]] = {
     'iterations': ('50', 'measurement attempts (selector iterations)'),
     'seed': ('1', 'seed of the real robot, the initial guess and the selector'),
     'noise': ('pose_dependent', "pose_dependent | constant (the paper's CN baseline)"),
+    'estimator': ('map', "map (online MAP, default) | ekf (the paper's filter)"),
+    'body_change': ('', 'a change of the real robot mid-run, e.g. "r_wrist_prosup.d+0.010 r_shoulder_yaw.offset+3"'),
+    'body_change_at': ('0', 'the selector iteration at whose command the body changes (0: never)'),
     'rtf': ('1.0', 'simulated seconds per wall second; 0 = as fast as possible'),
     'record_images': ('true', 'record the camera images (false: smaller bag)'),
     'output': ('results/run', 'directory of the bag, the model export and progress.jsonl'),
@@ -48,6 +51,8 @@ def node_specs(args: dict[str, str]) -> list[dict[str, Any]]:
     if noise not in NOISE_MODELS:
         raise ValueError(f'noise must be one of {list(NOISE_MODELS)}, got {noise!r}')
     seed = int(args['seed'])
+    if args['estimator'] not in ('map', 'ekf'):
+        raise ValueError(f"estimator must be 'map' or 'ekf', got {args['estimator']!r}")
     return [
         # The recorder first, so every latched fact (true table, initial estimate, camera poses) is in the bag.
         {'name': 'recorder', 'package': 'calibration_bringup', 'executable': 'recorder_node',
@@ -55,12 +60,13 @@ def node_specs(args: dict[str, str]) -> list[dict[str, Any]]:
          'parameters': {'output': os.path.join(out, 'calibration.mcap'),
                         'exclude_images': args['record_images'].lower() != 'true'}},
         {'name': 'sim', 'package': 'icub_sim_bridge', 'executable': 'sim_node', 'params_file': 'sim.yaml',
-         'parameters': {'perturb_seed': seed, 'real_time_factor': float(args['rtf'])}},
+         'parameters': {'perturb_seed': seed, 'real_time_factor': float(args['rtf']),
+                        'body_change': args['body_change'], 'body_change_at_command': int(args['body_change_at'])}},
         {'name': 'detector', 'package': 'marker_detector', 'executable': 'detector_node',
          'params_file': 'detector.yaml', 'parameters': {}},
         {'name': 'estimator', 'package': 'dh_estimator', 'executable': 'estimator_node',
          'params_file': 'estimator.yaml',
-         'parameters': {'initial_seed': seed, 'noise_model': noise,
+         'parameters': {'initial_seed': seed, 'noise_model': noise, 'estimator': args['estimator'],
                         'export_dir': os.path.join(out, 'model')}},
         {'name': 'selector', 'package': 'active_selector', 'executable': 'selector_node',
          'params_file': 'selector.yaml',

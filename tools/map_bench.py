@@ -1,0 +1,23 @@
+"""``make bench`` section: time of one online MAP update after 50 and after 500 observations.
+
+Synthetic observations (noise drawn from the pose-dependent model), reached online from the
+paper's initial spread; the median and p90 of 20 consecutive updates. With every observation in the
+problem the cost grows with their number; ``window 100`` folds older ones into the prior and
+bounds it. Run alone: ``python -m tools.map_bench``.
+"""
+from __future__ import annotations
+
+import sys
+
+from body_schema import load_robot
+
+from .map_study import timing
+
+
+def main(argv: list[str] | None = None) -> str:
+    _, table = timing(load_robot())
+    return '## dh_estimator: online MAP update (tools/map_bench.py)\n\n' + table + '\n'
+
+
+if __name__ == '__main__':
+    print(main(sys.argv[1:]))

@@ -83,7 +83,7 @@ def test_bag_opens_in_mcap_reader_with_every_contract_topic(run) -> None:
     missing = [t.name for t in CONTRACT if t.name not in seen]
     assert not missing, f'contract topics missing from the bag: {missing} (have {sorted(seen)})'
     assert [p['iteration'] for p in progress] == list(range(1, ITERATIONS + 1))   # one outcome each
-    assert all(p['outcome'] in ('accepted', 'rejected', 'failed') for p in progress), progress
+    assert all(p['outcome'] in ('accepted', 'outlier', 'rejected', 'failed') for p in progress), progress
 
 
 def test_bag_opens_in_rosbags_with_the_jazzy_type_store(run) -> None:
@@ -109,9 +109,37 @@ def test_final_estimate_beats_the_initial_guess_and_replay_reproduces_it(run) ->
     assert [r.iteration for r in ev.rows] == list(range(ITERATIONS + 1))
     assert last.online_position_mm < first.position_mm, (first, last)
     # The offline re-run on the recorded pairs makes the online node's decisions and updates.
-    assert ev.counters['updates'] == sum(r.outcome == 'accepted' for r in ev.rows)
+    assert ev.counters['updates'] == sum(r.outcome in ('accepted', 'outlier') for r in ev.rows)
     np.testing.assert_allclose(ev.final_dh, ev.online_final_dh, atol=1e-9)
     assert abs(last.position_mm - last.online_position_mm) < 1e-6
+
+
+def test_the_paper_ekf_and_a_body_that_changes_mid_run(tmp_path: Path) -> None:
+    """--estimator ekf --body-change: the sim changes the real robot at the 3rd command, the bag
+    holds both true tables, and the report's re-run (with the run's EKF) reproduces the online one."""
+    from calibration_interfaces import mcap_reader
+    from calibration_interfaces.messages import msg_to_table
+    from dh_estimator.evaluate import EvaluationSettings, evaluate_bag
+
+    env = dict(os.environ, PATH=f'{Path(sys.executable).parent}:{os.environ["PATH"]}')
+    env.pop('ROS_DOMAIN_ID', None)
+    proc = subprocess.run([str(SCRIPT), '--iterations', '4', '--seed', '2', '--rtf', '2.0', '--no-images',
+                           '--estimator', 'ekf', '--body-change', 'r_wrist_prosup.d+0.010 r_shoulder_yaw.offset+3',
+                           '--body-change-at', '3', '--output', str(tmp_path), '--timeout', '240'],
+                          env=env, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, f'stdout:\n{proc.stdout}\nstderr:\n{proc.stderr}'
+    assert 'changes by' in proc.stdout and 'estimator ekf' in proc.stdout
+    assert 'the real robot changed' in (tmp_path / 'logs' / 'sim.log').read_text()
+    tables = [msg_to_table(m, 7) for _topic, _t, m in mcap_reader.read_messages(tmp_path / 'calibration.mcap',
+                                                                                ['/body_schema/true'])]
+    assert len(tables) == 2
+    np.testing.assert_allclose(tables[1] - tables[0], np.array(
+        [[0, 0, 0, 0]] * 2 + [[0, 0, 0, np.radians(3.0)]] + [[0, 0, 0, 0]] + [[0, 0.010, 0, 0]] + [[0, 0, 0, 0]] * 2),
+        atol=1e-12)
+    ev = evaluate_bag(tmp_path / 'calibration.mcap',
+                      EvaluationSettings.from_parameters({**ESTIMATOR_PARAMS, 'estimator': 'ekf'}))
+    np.testing.assert_allclose(ev.final_dh, ev.online_final_dh, atol=1e-9)
+    np.testing.assert_allclose(ev.true_dh, tables[1])            # scored against the body as it is now
 
 
 def test_a_node_that_dies_fails_the_run_with_its_log_tail(tmp_path: Path) -> None:

@@ -151,6 +151,8 @@ fail() {    # fail NAME WHY: the node's log tail, stop everything, exit 1
 }
 
 recorder_args=(-p "output:=$bag")
+sim_args=()       # rcl refuses an empty value (-p body_change:=), so the change is passed only when asked for
+[ -z "$body_change" ] || sim_args=(-p "body_change:=$body_change" -p "body_change_at_command:=$body_change_at")
 [ "$record_images" = 1 ] || recorder_args+=(-p "exclude_images:=true")
 
 echo "run_calibration: $strategy, $iterations iterations, seed $seed, noise $noise, estimator $estimator," \
@@ -164,7 +166,7 @@ for ((t = 0; t < 200; t++)); do [ -s "$bag" ] && break; alive recorder || fail r
 [ -s "$bag" ] || fail recorder "did not open $bag within 20 s"
 start sim icub_sim_bridge sim_node --ros-args --params-file "$config/sim.yaml" \
   -p "perturb_seed:=$seed" -p "real_time_factor:=$rtf" -p "image_width:=$width" -p "image_height:=$height" \
-  -p "body_change:=$body_change" -p "body_change_at_command:=$body_change_at"
+  "${sim_args[@]}"
 start detector marker_detector detector_node --ros-args --params-file "$config/detector.yaml"
 start estimator dh_estimator estimator_node --ros-args --params-file "$config/estimator.yaml" \
   -p "initial_seed:=$seed" -p "noise_model:=$noise" -p "estimator:=$estimator" \

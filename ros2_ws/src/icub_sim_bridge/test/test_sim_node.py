@@ -189,8 +189,8 @@ def test_projected_corners_match_detected_ones_over_the_wire(ros) -> None:
     from scipy.spatial.transform import Rotation
 
     from body_schema.noise import view_geometry
-    from icub_sim_bridge.camera import project_points, refine_square_corners
-    from body_schema.markers import aruco_dictionary
+    from body_schema.markers import aruco_dictionary, marker_corners, refine_corners_edges
+    from icub_sim_bridge.camera import project_points
 
     make_sim(ros, supersample=2, cameras=['left'], max_joint_speed_deg=360.0)
     probe = Probe(ros)
@@ -229,10 +229,11 @@ def test_projected_corners_match_detected_ones_over_the_wire(ros) -> None:
             mk = hand @ m.hand_T_marker
             _r, phi = view_geometry(cam, mk)
             if phi < 45.0:
-                s = ROBOT.marker_side_length / 2
-                obj = np.array([[-s, s, 0], [s, s, 0], [s, -s, 0], [-s, -s, 0]])
+                obj = marker_corners(ROBOT.marker_side_length)
                 uv = project_points(obj @ mk[:3, :3].T + mk[:3, 3], cam, K)
-                errors.append(np.abs(refine_square_corners(gray, c.reshape(4, 2)) - uv).max())
+                refined = refine_corners_edges(gray, c.reshape(4, 2))
+                assert refined is not None, f'no edge fit for marker {int(i)}'
+                errors.append(np.abs(refined - uv).max())
     assert len(errors) >= 3, 'too few frontal detections'
     assert max(errors) < 0.5, errors
 

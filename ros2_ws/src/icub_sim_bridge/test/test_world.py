@@ -8,8 +8,8 @@ import pytest
 from body_schema.noise import view_geometry
 from body_schema.robot import load_robot
 from body_schema.sampling import perturb_dh, uniform_configs
-from icub_sim_bridge.camera import degrade, gl_projection, project_points, refine_square_corners
-from body_schema.markers import aruco_dictionary
+from body_schema.markers import aruco_dictionary, refine_corners_edges
+from icub_sim_bridge.camera import degrade, gl_projection, project_points
 from icub_sim_bridge.world import SimWorld, marker_texture
 
 ROBOT = load_robot()
@@ -59,7 +59,10 @@ def test_projection_matrix_maps_pixel_centres() -> None:
 
 
 def _detections(world, intr, supersample, n, seed):
-    """(phi [deg], corner errors (4, 2)) of every detection over n box configurations."""
+    """(phi [deg], corner errors (4, 2)) of every detection over n box configurations.
+
+    Corners are the detector's edge-line refinement of ArUco's (ArUco's own sit up to a pixel off,
+    so they would not resolve a half-pixel raster mistake)."""
     det = cv2.aruco.ArucoDetector(aruco_dictionary(ROBOT.marker_dictionary))
     cam = ROBOT.camera_pose('left')
     out = []
@@ -74,7 +77,9 @@ def _detections(world, intr, supersample, n, seed):
             spec = next(m for m in world.markers if m.placement.marker_id == int(i))
             _r, phi = view_geometry(cam, hand @ spec.placement.hand_T_marker)
             uv = project_points(truth[int(i)], cam, intr.K)
-            out.append((float(phi), refine_square_corners(gray, c.reshape(4, 2)) - uv))
+            refined = refine_corners_edges(gray, c.reshape(4, 2))
+            assert refined is not None, f'no edge fit for marker {int(i)} at q={q}'
+            out.append((float(phi), refined - uv))
     return out
 
 

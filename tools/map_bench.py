@@ -1,9 +1,9 @@
 """``make bench`` section: time of one online MAP update after 50 and after 500 observations.
 
 Synthetic observations (noise drawn from the pose-dependent model), reached online from the
-paper's initial spread; the median and p90 of 20 consecutive updates. With every observation in the
-problem the cost grows with their number; ``window 100`` folds older ones into the prior and
-bounds it. Run alone: ``python -m tools.map_bench``.
+paper's initial spread; the median and p90 of 20 consecutive updates. The default window of 100
+observations folds older ones into the prior and bounds the cost; with every observation kept
+(``window 0``) it grows with their number. Run alone: ``python -m tools.map_bench``.
 """
 from __future__ import annotations
 

@@ -37,7 +37,7 @@ FORGETTING = {
                                       'q_angle': float(np.radians(0.03)) ** 2},
     'random walk 0.3 mm / 0.1 deg': {'change_probability': 0.0, 'q_length': 9e-8,
                                      'q_angle': float(np.radians(0.1)) ** 2},
-    'window 15': {'change_probability': 0.0, 'window': 15},
+    'window 15, no change detection': {'change_probability': 0.0, 'window': 15},
     'change detection: 2 of 3 NIS beyond p=0.99': {'change_probability': 0.99},
     'change detection: 2 of 3 beyond p=0.999': {'change_probability': 0.999},
     'change detection: 3 of 3 beyond p=0.999': {'change_probability': 0.999, 'change_count': 3},
@@ -170,7 +170,7 @@ def timing(model, sizes: tuple[int, ...] = (50, 500), repeats: int = 20) -> tupl
     out = {}
     lines = ['| MAP update after N observations | median [ms] | p90 [ms] | residual evaluations (median) |',
              '|---|---|---|---|']
-    for settings_name, settings in (('all observations', MapSettings()), ('window 100', MapSettings(window=100))):
+    for settings_name, settings in (('default: window 100', MapSettings()), ('all kept: window 0', MapSettings(window=0))):
         est = MapEstimator(model.base, sampling.perturb_dh(model.dh, 0), sampling.initial_covariance(7), settings)
         ts, nf = [], []
         for k, o in enumerate(obs):

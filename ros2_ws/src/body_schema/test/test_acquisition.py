@@ -276,7 +276,7 @@ def test_batch_optimizer_record_bounds_and_quality(arm, box_configs, learned_occ
     sel = JointSelector(arm.calibration_box, cfg)
     s = sel.select(cost, prev)
     assert s.optimizer == 'batch:BOBYQA'
-    assert 512 < s.evaluations <= 512 + 2 * 20
+    assert 512 < s.evaluations <= 512 + 2 * 20 + 7 * 3 * 7      # candidates, refinement, snapping
     assert _inside(s.theta, s.bounds)
     cand = sampling.uniform_configs(s.bounds, 500, 21)
     assert s.cost <= np.min(sel.objective(cost, cand, prev))     # beats 500 uniform draws
@@ -307,3 +307,10 @@ def test_new_settings_reject_bad_values(arm, box_configs):
     cost = _cost(arm, box_configs, None)
     with pytest.raises(ValueError, match=r'visited must be .*\(K, 7\).*\(3,\)'):
         JointSelector(arm.calibration_box).select(cost, None, np.zeros(3))
+
+
+def test_batch_snaps_onto_the_previous_configuration_under_a_huge_ucsal_weight(arm, cost):
+    prev = sampling.uniform_configs(arm.calibration_box, 1, 5)[0]
+    cfg = SelectorConfig(strategy='ucsal', gamma=1e6, optimizer='batch', n_candidates=256, seed=1)
+    s = JointSelector(arm.calibration_box, cfg).select(cost, prev)
+    np.testing.assert_array_equal(s.theta, prev)      # exactly: the L1 kink, not merely near it

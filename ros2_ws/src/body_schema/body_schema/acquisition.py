@@ -349,9 +349,9 @@ class SelectorConfig:
     optimizer: str = 'direct'
     algorithm: str = 'DIRECT_L'
     max_evals: int = 1000
-    n_candidates: int = 2048
-    refine_starts: int = 2
-    refine_evals: int = 40
+    n_candidates: int = 512
+    refine_starts: int = 1
+    refine_evals: int = 60
     local_algorithm: str = 'BOBYQA'
     repeat_tolerance: float = 2e-3
     seed: int = 0
@@ -558,63 +558,92 @@ class JointSelector:
     def _batch(self, objective: Callable[[NDArray[np.float64]], NDArray[np.float64]],
                bounds: NDArray[np.float64], anchor: NDArray[np.float64] | None = None,
                ) -> tuple[NDArray[np.float64], float, int, int, str]:
-        """Sobol candidates in one batch, local refinement of the best few, then snapping.
+        """Sobol candidates in one batch, then two rounds of local refinement and snapping.
 
         Snapping: the optima of these costs often sit on a face of the search box or, for UCSAL,
         on a kink of the L1 distance (a joint left where it was), which a smooth local model
-        approaches only slowly. Greedily setting single joints to a bound or to ``anchor``, one
-        batch of ``<= 3 L`` variants per step, lands there exactly when that is better.
+        approaches only slowly. Greedily setting single joints to a bound or to ``anchor`` (one
+        batch of ``<= 3 L`` variants per step) lands there exactly when that is better; the second
+        refinement then moves only the joints not snapped. Round 1 refines the best
+        ``refine_starts`` candidates with ``refine_evals`` evaluations each, round 2 the incumbent
+        with half as many.
         """
         cfg = self.config
         lo, hi = bounds[:, 0], bounds[:, 1]
+        count = _Counted(objective)
         sobol = qmc.Sobol(d=lo.size, scramble=True, rng=self._rng)
         cand = lo + sobol.random_base2(int(math.log2(cfg.n_candidates))) * (hi - lo)
-        values = objective(cand)
-        n_evals, excluded = cand.shape[0], int(np.sum(np.isinf(values)))
+        values = count(cand)
         order = np.argsort(values)
-        i_best = int(order[0])
-        best = [float(values[i_best]), cand[i_best].copy()]
-        for i in order[:cfg.refine_starts]:
-            if not np.isfinite(values[i]):
-                break
-            # Excluded points look worse than the start (finite, so BOBYQA's model stays sane).
-            worse = float(values[i]) + abs(float(values[i])) + 1.0
-
-            def f(theta: NDArray[np.float64], grad: NDArray[np.float64]) -> float:
-                nonlocal n_evals, excluded
-                n_evals += 1
-                v = float(objective(theta[None])[0])
-                if not np.isfinite(v):
-                    excluded += 1
-                    return worse
-                if v < best[0]:
-                    best[0], best[1] = v, theta.copy()
-                return v
-
-            opt = nlopt.opt(LOCAL_ALGORITHMS[cfg.local_algorithm], lo.size)
-            opt.set_lower_bounds(lo)
-            opt.set_upper_bounds(hi)
-            opt.set_min_objective(f)
-            opt.set_maxeval(cfg.refine_evals)
-            # 5% of each side: a polish around the candidate (the Sobol cells are ~1/3 per side).
-            opt.set_initial_step(0.05 * (hi - lo))
-            try:
-                opt.optimize(cand[i].copy())
-            except (nlopt.RoundoffLimited, nlopt.ForcedStop):
-                pass
+        starts = [cand[i] for i in order[:max(cfg.refine_starts, 1)] if np.isfinite(values[i])]
+        if not starts:
+            return cand[order[0]], float(values[order[0]]), count.evals, count.excluded, f'batch:{cfg.local_algorithm}'
         targets = np.stack([lo, hi] + ([] if anchor is None else [np.clip(anchor, lo, hi)]))   # (T, L)
-        x, value = best[1], best[0]
-        for _ in range(lo.size):
+        for rnd in range(2):
+            if cfg.refine_starts > 0:
+                free = np.ones(lo.size, bool) if rnd == 0 else ~np.any(targets == count.best_x, axis=0)
+                for x0 in (starts if rnd == 0 else [count.best_x]):
+                    self._local(count, x0, lo, hi, free, cfg.refine_evals if rnd == 0 else cfg.refine_evals // 2)
+            self._snap(count, targets)
+        return count.best_x, count.best, count.evals, count.excluded, f'batch:{cfg.local_algorithm}'
+
+    def _local(self, count: '_Counted', x0: NDArray[np.float64], lo: NDArray[np.float64],
+               hi: NDArray[np.float64], free: NDArray[np.bool_], max_evals: int) -> None:
+        """A bounded derivative-free NLopt search from ``x0`` over the ``free`` joints."""
+        if not np.any(free):
+            return
+        f0 = float(count(x0[None])[0])
+        # Excluded points look worse than the start (finite, so BOBYQA's model stays sane).
+        worse = f0 + abs(f0) + 1.0 if np.isfinite(f0) else _EXCLUDED
+        x = x0.copy()
+
+        def f(y: NDArray[np.float64], grad: NDArray[np.float64]) -> float:
+            x[free] = y
+            v = float(count(x[None])[0])
+            return v if np.isfinite(v) else worse
+
+        opt = nlopt.opt(LOCAL_ALGORITHMS[self.config.local_algorithm], int(free.sum()))
+        opt.set_lower_bounds(lo[free])
+        opt.set_upper_bounds(hi[free])
+        opt.set_min_objective(f)
+        opt.set_maxeval(max_evals)
+        # 5% of each side: a polish around the start (the Sobol cells are ~1/3 per side).
+        opt.set_initial_step(0.05 * (hi - lo)[free])
+        try:
+            opt.optimize(np.clip(x0[free], lo[free], hi[free]))
+        except (nlopt.RoundoffLimited, nlopt.ForcedStop):
+            pass
+
+    @staticmethod
+    def _snap(count: '_Counted', targets: NDArray[np.float64]) -> None:
+        """Greedily move single joints of the incumbent onto ``targets`` (T, L) while that improves it."""
+        for _ in range(targets.shape[1]):
+            x = count.best_x
             t_idx, j_idx = np.nonzero(targets != x)
-            if not np.isfinite(value) or t_idx.size == 0:
-                break
+            if not np.isfinite(count.best) or t_idx.size == 0:
+                return
             variants = np.repeat(x[None], t_idx.size, axis=0)
             variants[np.arange(t_idx.size), j_idx] = targets[t_idx, j_idx]
-            v = objective(variants)
-            n_evals += t_idx.size
-            excluded += int(np.sum(np.isinf(v)))
-            k = int(np.argmin(v))
-            if not v[k] < value:
-                break
-            x, value = variants[k], float(v[k])
-        return x, value, n_evals, excluded, f'batch:{cfg.local_algorithm}'
+            before = count.best
+            count(variants)
+            if not count.best < before:
+                return
+
+
+class _Counted:
+    """An objective that counts its evaluations and excluded points and keeps the best point."""
+
+    def __init__(self, objective: Callable[[NDArray[np.float64]], NDArray[np.float64]]) -> None:
+        self.objective = objective
+        self.evals = self.excluded = 0
+        self.best = np.inf
+        self.best_x = np.empty(0)
+
+    def __call__(self, thetas: NDArray[np.float64]) -> NDArray[np.float64]:
+        v = self.objective(thetas)
+        self.evals += v.size
+        self.excluded += int(np.sum(np.isinf(v)))
+        k = int(np.argmin(v))
+        if v[k] < self.best or self.best_x.size == 0:
+            self.best, self.best_x = float(v[k]), np.array(thetas[k], dtype=float)
+        return v

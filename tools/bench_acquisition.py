@@ -168,6 +168,11 @@ VARIANTS = {
                                         repeat_tolerance=SelectorConfig.repeat_tolerance),
     'new: gain, batch, v_optimal': dict(occlusion_mode='gain', optimizer='batch', criterion='v_optimal',
                                         repeat_tolerance=SelectorConfig.repeat_tolerance),
+    # which change does what: the paper's objective with the new optimiser and no-repeat rule
+    'paper, batch, a_optimal': dict(occlusion_mode='paper', optimizer='batch', criterion='a_optimal',
+                                    repeat_tolerance=SelectorConfig.repeat_tolerance),
+    'paper, batch, v_optimal': dict(occlusion_mode='paper', optimizer='batch', criterion='v_optimal',
+                                    repeat_tolerance=SelectorConfig.repeat_tolerance),
 }
 
 

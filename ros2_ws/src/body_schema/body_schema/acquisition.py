@@ -478,8 +478,11 @@ class JointSelector:
 
     def is_repeat(self, thetas: ArrayLike, visited: cKDTree) -> NDArray[np.bool_]:
         """Whether each of (N, L) configurations is within ``repeat_tolerance`` of a visited one."""
-        d, _ = visited.query(np.atleast_2d(thetas), k=1, p=np.inf,
-                             distance_upper_bound=self.config.repeat_tolerance * (1 + 1e-12))
+        thetas = np.atleast_2d(thetas)
+        tol = self.config.repeat_tolerance * (1 + 1e-12)
+        if thetas.shape[0] <= 8:    # the local search's single points: brute force beats the tree query
+            return np.min(np.max(np.abs(visited.data - thetas[:, None, :]), axis=-1), axis=-1) <= tol
+        d, _ = visited.query(thetas, k=1, p=np.inf, distance_upper_bound=tol)
         return np.isfinite(d)
 
     def select(self, cost: AcquisitionCost | None, previous: ArrayLike | None = None,

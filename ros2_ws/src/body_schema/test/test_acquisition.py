@@ -257,6 +257,8 @@ def test_no_configuration_is_selected_twice(arm, box_configs, learned_occlusion,
     near_far = np.stack([first.theta + step, first.theta + 1.2 * step / 0.9 * 2])
     v = sel.objective(cost, near_far, None, tree)
     assert np.isinf(v[0]) and np.isfinite(v[1])
+    many = np.repeat(near_far, 10, axis=0)                  # the tree query path (N > 8) agrees
+    np.testing.assert_array_equal(sel.is_repeat(many, tree), np.repeat([True, False], 10))
 
 
 def test_every_candidate_a_repeat_raises(arm, box_configs):

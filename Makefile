@@ -7,7 +7,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.setup-stamp
 PKGS := $(wildcard ros2_ws/src/*/package.xml)
 PKG_DIRS := $(patsubst %/package.xml,%,$(PKGS))
-PKG_BUILD_FILES := $(PKGS) $(wildcard ros2_ws/src/*/setup.py ros2_ws/src/*/setup.cfg ros2_ws/src/*/config/*)
+PKG_BUILD_FILES := $(PKGS) $(wildcard ros2_ws/src/*/setup.py ros2_ws/src/*/setup.cfg ros2_ws/src/*/config/* ros2_ws/src/*/launch/*)
 
 # ament_index_python finds packages through AMENT_PREFIX_PATH; the venv is our install prefix.
 export AMENT_PREFIX_PATH := $(VENV)$(if $(AMENT_PREFIX_PATH),:$(AMENT_PREFIX_PATH),)
@@ -29,7 +29,7 @@ demo: setup
 	@bash scripts/demo.sh
 
 bench: setup
-	$(PY) -m calibration_bringup.bench
+	$(PY) -m tools.bench
 
 experiment: setup
 	$(PY) -m calibration_bringup.experiment $(EXPERIMENT_ARGS)

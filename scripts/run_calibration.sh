@@ -153,7 +153,7 @@ start sim icub_sim_bridge sim_node --ros-args --params-file "$config/sim.yaml" \
   -p "perturb_seed:=$seed" -p "real_time_factor:=$rtf" -p "image_width:=$width" -p "image_height:=$height"
 start detector marker_detector detector_node --ros-args --params-file "$config/detector.yaml"
 start estimator dh_estimator estimator_node --ros-args --params-file "$config/estimator.yaml" \
-  -p "initial_seed:=$seed" -p "noise_model:=$([ "$noise" = constant ] && echo constant || echo message)" \
+  -p "initial_seed:=$seed" -p "noise_model:=$noise" \
   -p "export_dir:=$output/model"
 start selector active_selector selector_node --ros-args --params-file "$config/selector.yaml" \
   -p "strategy:=$strategy" -p "iterations:=$iterations" -p "seed:=$seed" -p "noise_model:=$noise" \
@@ -186,7 +186,7 @@ stop selector sim detector estimator
 stop recorder
 echo "run_calibration: finished in ${wall} s; writing the report"
 calibration_cmd=$(command_of calibration_bringup calibration_report)
-# shellcheck disable=SC2086
+# shellcheck disable=SC2086  # the command line is words on purpose (ros2 run pkg exe)
 $calibration_cmd --bag "$bag" --output "$output" --wall-seconds "$wall" \
   --title "$strategy, $iterations iterations, seed $seed, noise $noise, ${width}x${height}" \
-  $([ "$noise" = constant ] && echo "--noise-model constant")
+  --params-file "$config/estimator.yaml" --noise-model "$noise"

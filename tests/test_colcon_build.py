@@ -158,6 +158,9 @@ def test_ament_index_marker_package_xml_and_config(built: Build) -> None:
                 installed = share / pkg / 'config' / cfg.name
                 assert installed.is_file(), f'{pkg}: config {cfg.name} not installed'
                 assert installed.read_bytes() == cfg.read_bytes()
+        for launch in sorted((SRC / pkg / 'launch').glob('*.launch.py')):
+            installed = share / pkg / 'launch' / launch.name
+            assert installed.is_file(), f'{pkg}: launch file {launch.name} not installed'
 
 
 def test_sourced_install_resolves_to_the_install(built: Build) -> None:

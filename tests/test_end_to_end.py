@@ -16,11 +16,21 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calibration_bringup.contract import CONTRACT
+from calibration_interfaces.contract import CONTRACT
+from calibration_interfaces.parameters import read_params_file
 
 REPO = Path(__file__).resolve().parents[1]
 SCRIPT = REPO / 'scripts' / 'run_calibration.sh'
 ITERATIONS = 5
+#: The estimator's parameters in every run of the launcher (the replays use the same).
+ESTIMATOR_PARAMS = read_params_file(REPO / 'ros2_ws' / 'src' / 'calibration_bringup' / 'config' / 'estimator.yaml',
+                                    'dh_estimator')
+
+
+def _evaluate(bag: Path):
+    from dh_estimator.evaluate import EvaluationSettings, evaluate_bag
+
+    return evaluate_bag(bag, EvaluationSettings.from_parameters(ESTIMATOR_PARAMS))
 
 
 @pytest.fixture(scope='module')
@@ -93,10 +103,8 @@ def test_bag_opens_in_rosbags_with_the_jazzy_type_store(run) -> None:
 
 
 def test_final_estimate_beats_the_initial_guess_and_replay_reproduces_it(run) -> None:
-    from dh_estimator.evaluate import evaluate_bag
-
     out = _ok(run)
-    ev = evaluate_bag(out / 'calibration.mcap')
+    ev = _evaluate(out / 'calibration.mcap')
     first, last = ev.rows[0], ev.rows[-1]
     assert [r.iteration for r in ev.rows] == list(range(ITERATIONS + 1))
     assert last.online_position_mm < first.position_mm, (first, last)
@@ -123,11 +131,12 @@ def test_bag_player_drives_a_fresh_estimator_to_the_online_estimate(run, ros) ->
 
     from calibration_bringup.player_node import BagPlayerNode
     from dh_estimator.estimator_node import EstimatorNode
-    from dh_estimator.evaluate import evaluate_bag
 
     out = _ok(run)
-    est = ros.add(EstimatorNode(context=ros.context, parameter_overrides=[
-        Parameter('initial_seed', value=3), Parameter('export_on_shutdown', value=False)]))
+    params = {**ESTIMATOR_PARAMS, 'initial_seed': 3, 'export_on_shutdown': False}
+    params.pop('use_sim_time')          # the player publishes no /clock here
+    est = ros.add(EstimatorNode(context=ros.context,
+                                parameter_overrides=[Parameter(k, value=v) for k, v in params.items()]))
     player = ros.add(BagPlayerNode(context=ros.context, parameter_overrides=[
         Parameter('bag', value=str(out / 'calibration.mcap')), Parameter('rate', value=4.0),
         Parameter('topics', value=['/joint_states', '/arm/command', '/hand_pose']),
@@ -136,7 +145,7 @@ def test_bag_player_drives_a_fresh_estimator_to_the_online_estimate(run, ros) ->
     ros.spin_until(lambda: all(p.get_subscription_count() for p in pubs), 15.0, 'the estimator subscribing')
     player.resume()
     ros.spin_until(lambda: player.done, 120.0, 'the bag played to its end')
-    online = evaluate_bag(out / 'calibration.mcap')
+    online = _evaluate(out / 'calibration.mcap')
     ros.spin_until(lambda: est.estimator.counters['updates'] == online.counters['updates'], 10.0,
                    f'{online.counters["updates"]} replayed updates (have {est.estimator.counters})')
     np.testing.assert_allclose(est.estimator.dh, online.online_final_dh, atol=1e-9)

@@ -1,7 +1,7 @@
 """Acquisition benchmark and quick selection study (issue 14).
 
 ``bench``: record selection states (DH estimate, covariance, attempts so far, start) from seeded
-study runs (:func:`active_selector.study.run_seed`), then, on the same states, run the batched
+study runs (:func:`tools.selector_study.run_seed`), then, on the same states, run the batched
 optimiser (Sobol candidates + NLopt refinement) and DIRECT-L with ``max_evals`` evaluations on the
 same objective, for each criterion x occlusion mode x strategy. Reports the fraction of states where
 the batch's objective is at least as good as DIRECT's (within a relative 1e-6) and the wall time of
@@ -11,7 +11,7 @@ one selection (median, p90; cost construction included).
 per-seed spread, movement, discarded attempts and repeated configurations.
 
 Run from the repository root with the workspace's venv, e.g.
-``.venv/bin/python tools/bench_acquisition.py bench`` or ``... study --seeds 10``.
+``.venv/bin/python -m tools.bench_acquisition bench`` or ``... study --seeds 10``.
 """
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ from typing import Sequence
 import numpy as np
 
 from active_selector.planner import Planner, PlannerSettings
-from active_selector.study import run_seed
+from tools.selector_study import run_seed
 from body_schema import ArmModel, load_robot
 from body_schema.acquisition import SelectorConfig
 from body_schema.noise import PoseDependentNoise

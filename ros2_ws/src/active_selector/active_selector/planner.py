@@ -14,9 +14,12 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.stats import qmc
 
 from body_schema import ArmModel
-from body_schema.acquisition import AcquisitionCost, JointSelector, Selection, SelectorConfig, Strategy
+from body_schema.acquisition import (CRITERIA, OCCLUSION_MODES, AcquisitionCost, JointSelector, Selection,
+                                     SelectorConfig, Strategy)
 from body_schema.noise import NoiseModel
 from body_schema.occlusion import OcclusionModel
+from calibration_interfaces.outcome import Outcome
+from calibration_interfaces.parameters import setting
 
 __all__ = ['PlannerSettings', 'Attempt', 'Planner']
 
@@ -25,18 +28,23 @@ __all__ = ['PlannerSettings', 'Attempt', 'Planner']
 class PlannerSettings:
     """Everything a strategy needs beyond the estimate (see body_schema.acquisition).
 
-    Defaults chosen by measurement with :mod:`active_selector.study` (README, active_selector).
+    Defaults chosen by measurement with ``tools/selector_study.py`` (README, active_selector).
+    Every field but ``selector`` is a node parameter (:mod:`active_selector.node_settings`).
     """
 
     selector: SelectorConfig = SelectorConfig()
-    penalty_a: float = 0.05
-    penalty_b: float = 10.0
-    occlusion_length_scale: float = 0.5
-    occlusion_a0: float = 1.0
-    occlusion_b0: float = 2.0
-    occlusion_mode: str = 'paper'
-    criterion: str = 'a_optimal'
-    box_samples: int = 128          # configurations v-optimality averages over (Sobol, fixed)
+    penalty_a: float = setting(0.05, 'Weight a of the a*arctan(b*p_x) penalty on hands behind the body',
+                               (0.0, 1e6))
+    penalty_b: float = setting(10.0, 'Slope b of the arctan penalty [1/m]', (0.0, 1e6))
+    occlusion_length_scale: float = setting(0.5, 'Occlusion kernel length scale (normalised joints)', (1e-4, 10.0))
+    occlusion_a0: float = setting(1.0, 'Beta prior successes', (1e-6, 1e6))
+    occlusion_b0: float = setting(2.0, 'Beta prior failures', (1e-6, 1e6))
+    occlusion_mode: str = setting('paper', "Failure handling in the cost: 'paper' (C0 / eta), 'expected' "
+                                  "(tr(P) - eta g) or 'gain' (-eta g / tr(P))", choices=OCCLUSION_MODES)
+    criterion: str = setting('a_optimal', "Uncertainty the selection reduces: 'a_optimal' (tr P) or "
+                             "'v_optimal' (hand-pose variance over the calibration box)", choices=CRITERIA)
+    box_samples: int = setting(128, 'Configurations (Sobol, fixed) v-optimality averages over; a power of two',
+                               (1, 65536))
 
     def __post_init__(self) -> None:
         n = self.box_samples
@@ -51,7 +59,7 @@ class Attempt:
     iteration: int
     target: NDArray[np.float64]
     reached: NDArray[np.float64]
-    outcome: str                 # accepted / rejected / failed / unreachable / timeout
+    outcome: Outcome             # accepted / rejected / failed / unreachable / timeout
     detected: bool
     movement_deg: float          # accumulated L1 joint movement after this iteration
     selection_seconds: float
@@ -123,13 +131,20 @@ class Planner:
         cost = None if self.strategy is Strategy.RANDOM else self.cost(dh, P, camera_pose)
         return self.selector.select(cost, self.previous, self.visited)
 
-    def record(self, target: ArrayLike, reached: ArrayLike, outcome: str, detected: bool,
+    def record(self, target: ArrayLike, reached: ArrayLike, outcome: Outcome | str, detected: bool,
                selection_seconds: float) -> Attempt:
-        """Account one iteration: occlusion model, movement, history."""
+        """Account one iteration: occlusion model, movement, history.
+
+        Raises
+        ------
+        ValueError
+            If ``outcome`` is not an :class:`~calibration_interfaces.outcome.Outcome` value.
+        """
+        outcome = Outcome(outcome)
         reached = np.asarray(reached, dtype=float)
         prev = self.previous
         self.movement_deg += float(np.degrees(np.sum(np.abs(reached - prev))))
-        if outcome != 'unreachable':
+        if outcome is not Outcome.UNREACHABLE:     # an unreached pose says nothing about visibility
             self.occlusion.add(np.clip(reached, self.model.calibration_box[:, 0], self.model.calibration_box[:, 1]),
                                detected)
         attempt = Attempt(len(self.history) + 1, np.asarray(target, dtype=float), reached, outcome,

@@ -1,35 +1,156 @@
-"""The selector node in-process: without an estimate it waits, says why, and commands nothing."""
+"""The selector node in-process, driven by probe publishers: it waits for its inputs and says
+why, commands a target, and ends an iteration as failed, accepted (the estimator's verdict at
+the reached configuration) or unreachable, publishing one progress record each."""
+from __future__ import annotations
+
+import json
+
 import numpy as np
-from geometry_msgs.msg import PoseStamped
+import pytest
+from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+from geometry_msgs.msg import Pose, PoseArray, PoseStamped
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
+from std_msgs.msg import String
 from trajectory_msgs.msg import JointTrajectory
 
 import body_schema
-from active_selector.selector_node import LATCHED, Phase, SelectorNode
+from active_selector.selector_node import Phase, SelectorNode
+from calibration_interfaces.node_util import qos_profile
+from calibration_interfaces.outcome import Outcome, encode_status
 
 ARM = body_schema.load_robot()
 
 
+class Probe:
+    """Publishers of the selector's inputs and recorders of its outputs."""
+
+    def __init__(self, ros, **params) -> None:
+        self.ros = ros
+        self.node = ros.add(SelectorNode(context=ros.context, parameter_overrides=[
+            Parameter(k, value=v) for k, v in params.items()]))
+        p = ros.node('probe')
+        self.commands: list[JointTrajectory] = []
+        self.progress: list[dict] = []
+        p.create_subscription(JointTrajectory, '/arm/command', self.commands.append, qos_profile('/arm/command'))
+        p.create_subscription(String, '/calibration/progress', lambda m: self.progress.append(json.loads(m.data)),
+                              qos_profile('/calibration/progress'))
+        self.js = p.create_publisher(JointState, '/joint_states', 10)
+        self.markers = p.create_publisher(PoseArray, '/markers', qos_profile('/markers'))
+        self.status = p.create_publisher(DiagnosticStatus, '/body_schema/update_status',
+                                         qos_profile('/body_schema/update_status'))
+        self.cam = p.create_publisher(PoseStamped, '/camera/left/pose', qos_profile('/camera/left/pose'))
+        ros.spin_until(lambda: self.js.get_subscription_count() > 0 and self.markers.get_subscription_count() > 0
+                       and self.status.get_subscription_count() > 0, 10.0, 'discovery')
+
+    def stamp(self, ahead: float = 0.0):
+        t = self.node.get_clock().now().nanoseconds + int(ahead * 1e9)
+        msg = JointState().header.stamp
+        msg.sec, msg.nanosec = divmod(t, 10**9)
+        return msg
+
+    def joints(self, q: np.ndarray, ahead: float = 0.0) -> None:
+        msg = JointState(name=list(ARM.joint_names), position=np.asarray(q).tolist())
+        msg.header.stamp = self.stamp(ahead)
+        self.js.publish(msg)
+
+    def target(self) -> np.ndarray:
+        """Start the arm at the box centre; the target the node then commands."""
+        q0 = np.mean(ARM.calibration_box, axis=1)
+        self.ros.spin_until(lambda: self.joints(q0) or self.commands, 10.0, 'a command')
+        return np.array(self.commands[-1].points[-1].positions)
+
+    def settle(self, q: np.ndarray) -> None:
+        for k in range(2):
+            self.joints(q, ahead=0.01 * (k + 1))
+        self.ros.spin_until(lambda: self.node.phase is not Phase.MOVING, 5.0, 'settling')
+
+    def frame(self, n_markers: int) -> None:
+        msg = PoseArray(poses=[Pose() for _ in range(n_markers)])
+        msg.header.stamp = self.stamp(ahead=1.0)          # well after settle_time
+        self.markers.publish(msg)
+
+    def verdict(self, outcome: Outcome, q: np.ndarray) -> None:
+        kv = encode_status(outcome, 0.0, q, 1.0, 0.001, {'updates': 1, 'rejected': 0, 'duplicates': 0})
+        self.status.publish(DiagnosticStatus(message='mahalanobis 1.000',
+                                             values=[KeyValue(key=k, value=v) for k, v in kv.items()]))
+
+
 def test_waits_for_estimate_and_says_why(ros, capfd):
-    node = ros.add(SelectorNode(context=ros.context, parameter_overrides=[
-        Parameter('strategy', value='al'), Parameter('wait_report_period', value=0.2)]))
-    probe = ros.node('probe')
-    commands = []
-    probe.create_subscription(JointTrajectory, '/arm/command', commands.append, 10)
-    js = probe.create_publisher(JointState, '/joint_states', 10)
-    cam = probe.create_publisher(PoseStamped, '/camera/left/pose', LATCHED)
+    probe = Probe(ros, strategy='al', wait_report_period=0.2)
+    node = probe.node
     pose = PoseStamped()
     pose.header.frame_id = 'root_link'
     pose.pose.orientation.w = 1.0
-    cam.publish(pose)
-    ros.spin_until(lambda: js.get_subscription_count() > 0, 10.0, 'discovery')
+    probe.cam.publish(pose)
     q = np.mean(ARM.calibration_box, axis=1)
-    ros.spin_until(lambda: (js.publish(JointState(name=list(ARM.joint_names), position=q.tolist())) or
-                            node.q is not None and node.camera_pose is not None), 10.0, 'joints and camera pose')
+    ros.spin_until(lambda: probe.joints(q) or node.q is not None and node.camera_pose is not None, 10.0,
+                   'joints and camera pose')
     ros.spin_for(0.6)
     assert node.phase is Phase.WAITING
     assert node.waiting_for == ['/body_schema/estimate', '/body_schema/covariance']
-    assert commands == []
+    assert probe.commands == []
     err = capfd.readouterr().err
     assert 'waiting for /body_schema/estimate, /body_schema/covariance before selecting' in err
+
+
+def test_an_empty_frame_after_settling_fails_the_iteration(ros, tmp_path):
+    probe = Probe(ros, strategy='random', iterations=2, seed=3, progress_file=str(tmp_path / 'p.jsonl'))
+    target = probe.target()
+    assert ARM.within_limits(target)
+    probe.settle(target)
+    assert probe.node.phase is Phase.AWAITING_OUTCOME
+    probe.frame(0)
+    ros.spin_until(lambda: probe.progress, 5.0, 'a progress record')
+    [rec] = probe.progress
+    assert (rec['iteration'], rec['outcome'], rec['detected']) == (1, 'failed', False)
+    assert np.allclose(np.radians(rec['target_deg']), target) and rec['discarded'] == 1
+    assert json.loads((tmp_path / 'p.jsonl').read_text()) == rec
+    assert probe.node.phase is not Phase.DONE                 # one of two iterations
+    ros.spin_until(lambda: len(probe.commands) == 2, 5.0, 'the next command')
+
+
+def test_the_verdict_at_the_reached_configuration_ends_the_last_iteration(ros):
+    probe = Probe(ros, strategy='random', iterations=1, seed=4)
+    target = probe.target()
+    probe.settle(target)
+    probe.frame(1)
+    probe.verdict(Outcome.ACCEPTED, target + 0.5)             # another configuration: not this attempt
+    probe.verdict(Outcome.DUPLICATE, target)                  # not a verdict that ends an iteration
+    ros.spin_for(0.3)
+    assert probe.progress == []
+    probe.verdict(Outcome.REJECTED, target)
+    ros.spin_until(lambda: probe.progress, 5.0, 'the progress record')
+    assert probe.node.done
+    [rec] = probe.progress
+    assert (rec['outcome'], rec['detected'], rec['reason']) == ('rejected', True, 'mahalanobis 1.000')
+
+
+def test_a_malformed_status_is_reported_once_and_ignored(ros, capfd):
+    probe = Probe(ros, strategy='random', iterations=1, seed=5)
+    target = probe.target()
+    probe.settle(target)
+    probe.frame(1)
+    bad = DiagnosticStatus(values=[KeyValue(key='outcome', value='accepted')])   # no joints, no stamp
+    for _ in range(3):
+        probe.status.publish(bad)
+    ros.spin_for(0.3)
+    assert probe.progress == [] and probe.node.phase is Phase.AWAITING_OUTCOME
+    assert capfd.readouterr().err.count('/body_schema/update_status ignored') == 1
+
+
+def test_a_target_not_reached_in_time_is_unreachable(ros):
+    probe = Probe(ros, strategy='random', iterations=1, seed=6, settle_timeout=0.3)
+    target = probe.target()
+    stuck = target.copy()
+    stuck[0] = target[0] + np.radians(5.0) * (1 if target[0] < 0 else -1)
+    probe.joints(stuck)
+    ros.spin_until(lambda: probe.progress, 5.0, 'the timeout')
+    [rec] = probe.progress
+    assert rec['outcome'] == 'unreachable' and f'{ARM.joint_names[0]} is 5.00 deg away' in rec['reason']
+
+
+@pytest.mark.parametrize('name, value', [('strategy', 'best'), ('noise_model', 'pdn'), ('eye', 'middle')])
+def test_bad_choices_are_refused_by_name(ros, name, value):
+    with pytest.raises(ValueError, match=value):
+        SelectorNode(context=ros.context, parameter_overrides=[Parameter(name, value=value)])

@@ -39,8 +39,7 @@ def orientation_errors_deg(r_true: ArrayLike, r_est: ArrayLike) -> NDArray[np.fl
     -------
     ndarray, shape () or (N,)
     """
-    # The angle of O^T O_hat equals that of O_hat O^T (a conjugate): the norm of its log.
-    return np.degrees(np.linalg.norm(kinematics.rotation_vector_error(r_est, r_true), axis=-1))
+    return kinematics.rotation_angle_deg(r_est, r_true)
 
 
 @dataclass(frozen=True)

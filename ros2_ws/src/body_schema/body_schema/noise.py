@@ -23,7 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from .robot import MarkerPlacement
 
-__all__ = ['view_geometry', 'NoiseModel', 'PoseDependentNoise', 'ConstantNoise', 'noise_model']
+__all__ = ['view_geometry', 'NoiseModel', 'PoseDependentNoise', 'ConstantNoise', 'NOISE_MODELS', 'noise_model']
 
 #: phi beyond which a marker is seen edge-on or from behind and cannot be detected [deg].
 MAX_VIEW_ANGLE_DEG = 90.0
@@ -195,10 +195,15 @@ class ConstantNoise(_Base):
         return (np.full(shape, self.sigma_pos ** 2), np.full(shape, self.sigma_rot ** 2))
 
 
+#: The names of the noise models, as every node parameter, CLI flag and config file spells them.
+NOISE_MODELS: tuple[str, ...] = ('pose_dependent', 'constant')
+
+
 def noise_model(kind: str, **params: float) -> PoseDependentNoise | ConstantNoise:
-    """Build a noise model by name: ``"pose_dependent"`` or ``"constant"`` (CN)."""
-    if kind in ('pose_dependent', 'pdn'):
+    """Build a noise model by name (one of :data:`NOISE_MODELS`): ``"pose_dependent"`` or
+    ``"constant"`` (the paper's CN baseline)."""
+    if kind == 'pose_dependent':
         return PoseDependentNoise(**params)
-    if kind in ('constant', 'cn'):
+    if kind == 'constant':
         return ConstantNoise(**params)
-    raise ValueError(f"unknown noise model {kind!r}; expected 'pose_dependent' or 'constant'")
+    raise ValueError(f'unknown noise model {kind!r}; expected one of {list(NOISE_MODELS)}')

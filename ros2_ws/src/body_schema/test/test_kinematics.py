@@ -13,7 +13,7 @@ def arm():
 
 
 def test_fk_reference_configurations(arm):
-    # DESIGN.md section 4 (robotology iKinFwd.cpp).
+    # docs/architecture.md section 4 (robotology iKinFwd.cpp).
     np.testing.assert_allclose(arm.forward_kinematics(np.zeros(7))[:3, 3], [-0.011, 0.094, -0.177], atol=1e-3)
     q = np.radians([-30, 30, 0, 45, 0, 0, 0])
     np.testing.assert_allclose(arm.forward_kinematics(q)[:3, 3], [-0.298, 0.211, 0.029], atol=1e-3)

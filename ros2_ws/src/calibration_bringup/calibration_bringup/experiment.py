@@ -7,7 +7,7 @@ Usage::
     python -m calibration_bringup.experiment --methods AL CCSAL --repetitions 3 --iterations 10
     python -m calibration_bringup.experiment_figures results/experiment     # re-plot only
 
-Methods (DESIGN.md section 5): ``R``, ``AL``, ``UCSAL``, ``CCSAL`` with the pose-dependent noise
+Methods (docs/architecture.md section 5): ``R``, ``AL``, ``UCSAL``, ``CCSAL`` with the pose-dependent noise
 model, and ``AL-CN``, ``UCSAL-CN``, ``CCSAL-CN`` with the constant one (selector and estimator
 both use the CN covariance; the detector keeps publishing pose-dependent covariances, which the
 estimator then ignores).
@@ -40,7 +40,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import functools
 import json
 import math
 import multiprocessing as mp
@@ -53,6 +52,8 @@ from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Iterator, Sequence, TextIO
+
+from .graph import InProcessGraph, default_parameters, merge_parameters, recorder_available, ros_session
 
 __all__ = ['METHODS', 'COLUMNS', 'Method', 'RunSpec', 'GraphSettings', 'ExperimentConfig', 'RunError',
            'plan_runs', 'is_finished', 'node_parameters', 'run_graph', 'write_rows', 'read_rows', 'combine_runs',
@@ -193,98 +194,18 @@ def node_parameters(spec: RunSpec, settings: GraphSettings = GraphSettings()) ->
         ``{'sim': {...}, 'detector': {...}, 'estimator': {...}, 'selector': {...}}``.
     """
     method = METHODS[spec.method]
-    sim_time = {'use_sim_time': True}
     noise = {'noise_model': 'constant'} if method.constant_noise else {}
-    return {
-        'sim': {'real_time_factor': 0.0, 'cameras': ['left'], 'perturb_seed': spec.seed,
-                'image_rate': settings.image_rate, 'physics_step': settings.physics_step,
+    return merge_parameters(default_parameters(), {
+        'sim': {'perturb_seed': spec.seed, 'image_rate': settings.image_rate, 'physics_step': settings.physics_step,
                 'max_joint_speed_deg': settings.max_joint_speed_deg,
                 'image_width': settings.image_width, 'image_height': settings.image_height},
-        'detector': dict(sim_time),
-        'estimator': {**sim_time, 'initial_seed': spec.seed, 'export_on_shutdown': False, **noise},
-        'selector': {**sim_time, 'strategy': method.strategy, 'iterations': spec.iterations,
-                     'seed': spec.seed, **noise},
-    }
+        'estimator': {'initial_seed': spec.seed, **noise},
+        'selector': {'strategy': method.strategy, 'iterations': spec.iterations, 'seed': spec.seed, **noise},
+    })
 
 
 # ------------------------------------------------------------------------------------------
 # One run: the graph in this process
-
-class _Stopwatch:
-    """Accumulates wall time spent in wrapped callables, per key."""
-
-    def __init__(self) -> None:
-        self.totals: dict[str, float] = {}
-
-    def wrap(self, key: str, fn: Callable[..., Any]) -> Callable[..., Any]:
-        """``fn`` timed into ``totals[key]``; it keeps ``fn``'s signature (``__wrapped__``), which
-        rclpy inspects to decide whether a subscription callback also gets the message info."""
-        self.totals.setdefault(key, 0.0)
-        totals, clock = self.totals, time.perf_counter
-
-        @functools.wraps(fn)
-        def timed(*args: Any, **kwargs: Any) -> Any:
-            t0 = clock()
-            try:
-                return fn(*args, **kwargs)
-            finally:
-                totals[key] += clock() - t0
-        return timed
-
-    def time_node(self, key: str, node: Any) -> None:
-        """Time every present subscription and timer callback of ``node``."""
-        for sub in node.subscriptions:
-            sub.callback = self.wrap(key, sub.callback)
-        for tmr in node.timers:
-            tmr.callback = self.wrap(key, tmr.callback)
-
-
-def recorder_available() -> bool:
-    """Whether :mod:`calibration_bringup.recorder_node` is installed."""
-    import importlib.util
-
-    return importlib.util.find_spec('calibration_bringup.recorder_node') is not None
-
-
-def make_recorder(context: Any, path: Path) -> Any:
-    """The MCAP recorder node for one run: every contract topic except the images and the
-    right eye (not simulated in experiments).
-
-    Raises
-    ------
-    RunError
-        If the recorder node is not available.
-    """
-    from rclpy.parameter import Parameter
-
-    from .contract import CONTRACT, IMAGE_TOPICS
-
-    try:
-        from .recorder_node import RecorderNode
-    except ImportError as exc:
-        raise RunError(f'recording asked for but calibration_bringup.recorder_node is missing ({exc}); '
-                       f'use --no-record') from exc
-    topics = [t.name for t in CONTRACT if t.name not in IMAGE_TOPICS and not t.name.startswith('/camera/right/')]
-    return RecorderNode(context=context, start_parameter_services=False, parameter_overrides=[
-        Parameter('output', value=str(path)), Parameter('topics', value=topics)])
-
-
-@contextmanager
-def _ros_graph(domain_id: int) -> Iterator[tuple[Any, Any]]:
-    import rclpy
-    from rclpy.context import Context
-    from rclpy.executors import SingleThreadedExecutor
-
-    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=domain_id)
-    executor = SingleThreadedExecutor(context=ctx)
-    try:
-        yield ctx, executor
-    finally:
-        executor.shutdown()
-        rclpy.try_shutdown(context=ctx)
-
 
 def run_graph(spec: RunSpec, domain_id: int, settings: GraphSettings = GraphSettings(),
               record_path: Path | None = None,
@@ -309,49 +230,30 @@ def run_graph(spec: RunSpec, domain_id: int, settings: GraphSettings = GraphSett
     """
     import numpy as np
     from rclpy.node import Node
-    from rclpy.parameter import Parameter
     from std_msgs.msg import String
 
-    from active_selector.selector_node import SelectorNode
     from body_schema.metrics import PoseErrorEvaluator
-    from dh_estimator.estimator_node import EstimatorNode
-    from icub_sim_bridge.sim_node import SimNode
-    from marker_detector.detector_node import DetectorNode
 
-    params = node_parameters(spec, settings)
     rows: list[dict[str, Any]] = []
-    with _ros_graph(domain_id) as (ctx, executor):
-        def make(cls: type, key: str) -> Any:
-            return cls(context=ctx, start_parameter_services=False, parameter_overrides=[
-                Parameter(k, value=v) for k, v in params[key].items()])
-
-        nodes: dict[str, Any] = {}
+    with ros_session(domain_id) as (ctx, executor):
         try:
-            nodes['sim'] = make(SimNode, 'sim')
-            nodes['detector'] = make(DetectorNode, 'detector')
-            nodes['estimator'] = make(EstimatorNode, 'estimator')
-            nodes['selector'] = make(SelectorNode, 'selector')
-            if record_path is not None:
-                record_path.parent.mkdir(parents=True, exist_ok=True)
-                nodes['recorder'] = make_recorder(ctx, record_path)
-            sim, est, sel = nodes['sim'], nodes['estimator'], nodes['selector']
+            graph = InProcessGraph(ctx, executor, node_parameters(spec, settings), record_path, time_callbacks=True)
+        except RuntimeError as exc:     # the recorder asked for but missing
+            raise RunError(f'{exc}; use --no-record') from exc
+        with graph:
+            sim, est, sel = graph.sim, graph.estimator, graph.selector
             evaluate = PoseErrorEvaluator(sim.robot.base, sim.true_dh, sim.robot.calibration_box)
 
-            watch = _Stopwatch()
-            for key, node in nodes.items():
-                watch.time_node(key, node)
-            # Instance attributes, for timing only: rendering, and the recorder's subscriptions
-            # created later (on discovery).
-            sim.world.render = watch.wrap('render', sim.world.render)
-            if 'recorder' in nodes:
-                nodes['recorder']._on_message = watch.wrap('recorder', nodes['recorder']._on_message)
+            def totals() -> dict[str, float]:
+                return {**graph.callback_seconds, 'render': sim.world.render_seconds}
+
             base = {'method': spec.method, 'repetition': spec.repetition, 'seed': spec.seed}
             e0 = evaluate(est.estimator.dh)
             rows.append({**base, 'iteration': 0, 'outcome': 'initial', 'detected': '',
                          'position_mm': e0.position_mm, 'orientation_deg': e0.orientation_deg,
                          'movement_deg': 0.0, 'discarded': 0, 'selection_s': 0.0, 'move_sim_s': 0.0,
                          **{c: 0.0 for c in ('render_s', 'cpu_s', 'wall_s', *_NODE_COLUMNS)}})
-            last = {'wall': time.perf_counter(), 'cpu': time.process_time(), **dict(watch.totals)}
+            last = {'wall': time.perf_counter(), 'cpu': time.process_time(), **totals()}
             tables: list[np.ndarray] = []
 
             def on_progress(msg: String) -> None:
@@ -363,24 +265,22 @@ def run_graph(spec: RunSpec, domain_id: int, settings: GraphSettings = GraphSett
                        'discarded': int(rec['discarded']), 'selection_s': float(rec['selection_s']),
                        'move_sim_s': float(rec['move_sim_s']), 'cpu_s': cpu - last['cpu'],
                        'wall_s': now - last['wall']}
+                current = totals()
                 for col, key in (*_NODE_COLUMNS.items(), ('render_s', 'render')):
-                    total = watch.totals.get(key, 0.0)
+                    total = current.get(key, 0.0)
                     row[col] = total - last.get(key, 0.0)
                     last[key] = total
                 last['wall'], last['cpu'] = now, cpu
                 rows.append(row)
 
-            probe = Node('experiment_probe', context=ctx, start_parameter_services=False)
-            nodes['probe'] = probe
+            probe = graph.add('probe', Node('experiment_probe', context=ctx, start_parameter_services=False))
             probe.create_subscription(String, '/calibration/progress', on_progress, 100)
-            for node in nodes.values():
-                executor.add_node(node)
 
             limit = 60.0 + settings.run_timeout * spec.iterations
             deadline = time.monotonic() + limit
             while len(rows) <= spec.iterations:
                 n = len(rows)
-                executor.spin_once(timeout_sec=0.05)
+                graph.spin_once(timeout_sec=0.05)
                 if not ctx.ok():
                     raise KeyboardInterrupt    # rclpy's signal handler shut the context down
                 if len(rows) > n:
@@ -394,19 +294,8 @@ def run_graph(spec: RunSpec, domain_id: int, settings: GraphSettings = GraphSett
                     raise RunError(f'{spec.label}: only {len(rows) - 1} of {spec.iterations} iterations '
                                    f'within {limit:.0f} s '
                                    f'(selector phase: {sel.phase.value})')
-            if 'recorder' in nodes:
-                # The bag is complete once it holds the last progress record too.
-                recorder, t_end = nodes['recorder'], time.monotonic() + 5.0
-                while recorder.counts.get('/calibration/progress', 0) < spec.iterations \
-                        and time.monotonic() < t_end:
-                    executor.spin_once(timeout_sec=0.01)
-        finally:
-            rec = nodes.get('recorder')
-            if rec is not None:
-                rec.close()
-            for node in nodes.values():
-                executor.remove_node(node)
-                node.destroy_node()
+            # The bag is complete once it holds the last progress record too.
+            graph.wait_for_recorder('/calibration/progress', spec.iterations)
     return rows
 
 

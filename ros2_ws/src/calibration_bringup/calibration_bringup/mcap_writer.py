@@ -15,7 +15,7 @@ What makes a file a rosbag2 MCAP file (and so readable by ``ros2 bag play FILE.m
 * chunked, compressed chunks, message indexes, and a summary with statistics at the end.
 
 Files are written unbuffered chunk by chunk (:class:`McapBagWriter`), so a writer killed with
-SIGKILL leaves a file whose complete chunks are all readable (see :mod:`calibration_bringup.bag`).
+SIGKILL leaves a file whose complete chunks are all readable (see :mod:`calibration_interfaces.mcap_reader`).
 """
 from __future__ import annotations
 
@@ -23,17 +23,16 @@ import functools
 import os
 import re
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Self
+from typing import Self
 
 from mcap.writer import CompressionType, Writer
+
+from calibration_interfaces.mcap_reader import QosOffer
 
 PROFILE = 'ros2'
 MESSAGE_ENCODING = 'cdr'
 SEPARATOR = '=' * 80
-#: rmw's RMW_DURATION_INFINITE (2^63 - 1 ns), written as {sec: 9223372036, nsec: 854775807}.
-INFINITE_NS = 2**63 - 1
 LIBRARY = 'calibration_bringup.mcap_writer'
 
 # The field-type pattern and primitive list of rosbag2_storage_mcap's definition cache, so that
@@ -163,34 +162,6 @@ def schema_text(type_name: str, share: Callable[[str], str] | None = None) -> st
     return schema_for(type_name, share)[1]
 
 
-@dataclass(frozen=True)
-class QosOffer:
-    """One publisher's QoS as rosbag2 stores it (policy names as in rmw's ``*_to_str``).
-
-    Durations are in nanoseconds; :data:`INFINITE_NS` means infinite. ``history`` is usually
-    ``'unknown'`` and ``depth`` 0: DDS discovery does not carry them.
-    """
-
-    history: str = 'unknown'
-    depth: int = 0
-    reliability: str = 'reliable'
-    durability: str = 'volatile'
-    deadline_ns: int = INFINITE_NS
-    lifespan_ns: int = INFINITE_NS
-    liveliness: str = 'automatic'
-    liveliness_lease_duration_ns: int = INFINITE_NS
-    avoid_ros_namespace_conventions: bool = False
-
-
-_POLICY_NAMES = {  # rmw enum values -> names (rosbag2 metadata <= 8 wrote the numbers)
-    'history': ('system_default', 'keep_last', 'keep_all', 'unknown'),
-    'reliability': ('system_default', 'reliable', 'best_effort', 'unknown', 'best_available'),
-    'durability': ('system_default', 'transient_local', 'volatile', 'unknown', 'best_available'),
-    'liveliness': ('system_default', 'automatic', 'manual_by_node', 'manual_by_topic', 'unknown',
-                   'best_available'),
-}
-# Infinity as Foxy-era rmw implementations reported it (rosbag2 maps these to infinite too).
-_FOXY_INFINITE = {(0x7FFFFFFF, 0xFFFFFFFF), (0x7FFFFFFF, 0x7FFFFFFF), divmod(INFINITE_NS, 10**9)}
 
 
 def _duration_yaml(key: str, ns: int) -> str:
@@ -217,54 +188,6 @@ def offered_qos_yaml(offers: Sequence[QosOffer]) -> str:
             f'  avoid_ros_namespace_conventions: {"true" if q.avoid_ros_namespace_conventions else "false"}',
         ]))
     return '\n'.join(items)
-
-
-def _policy(kind: str, value: Any) -> str:
-    names = _POLICY_NAMES[kind]
-    if isinstance(value, int) and not isinstance(value, bool):
-        return names[value] if 0 <= value < len(names) else 'unknown'
-    value = str(value).lower()
-    return value if value in names else 'unknown'
-
-
-def _duration_ns(d: Any) -> int:
-    if not isinstance(d, dict):
-        return INFINITE_NS
-    sec, nsec = int(d.get('sec', 0)), int(d.get('nsec', 0))
-    if (sec, nsec) in _FOXY_INFINITE:
-        return INFINITE_NS
-    return sec * 10**9 + nsec
-
-
-def parse_offered_qos(text: str) -> list[QosOffer]:
-    """Parse ``offered_qos_profiles`` (names as metadata version 9, or numbers as before).
-
-    Raises
-    ------
-    ValueError
-        If ``text`` is not a YAML list of QoS mappings.
-    """
-    import yaml
-
-    if not text.strip():
-        return []
-    try:
-        items = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        raise ValueError(f'offered_qos_profiles is not YAML: {exc}') from exc
-    if not isinstance(items, list) or not all(isinstance(i, dict) for i in items):
-        raise ValueError(f'offered_qos_profiles is not a list of mappings: {text[:200]!r}')
-    return [QosOffer(
-        history=_policy('history', i.get('history', 'unknown')),
-        depth=int(i.get('depth', 0)),
-        reliability=_policy('reliability', i.get('reliability', 'unknown')),
-        durability=_policy('durability', i.get('durability', 'unknown')),
-        deadline_ns=_duration_ns(i.get('deadline')),
-        lifespan_ns=_duration_ns(i.get('lifespan')),
-        liveliness=_policy('liveliness', i.get('liveliness', 'unknown')),
-        liveliness_lease_duration_ns=_duration_ns(i.get('liveliness_lease_duration')),
-        avoid_ros_namespace_conventions=bool(i.get('avoid_ros_namespace_conventions', False)),
-    ) for i in items]
 
 
 class _UnbufferedFile:

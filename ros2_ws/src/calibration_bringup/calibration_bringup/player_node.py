@@ -49,21 +49,21 @@ from collections.abc import Iterator
 from typing import Any
 
 import rclpy
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.clock import Clock, ClockType
 from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
 from rosgraph_msgs.msg import Clock as ClockMsg
 from std_srvs.srv import Trigger
 
-from . import bag as bagmod
-from .contract import BY_NAME
-from .mcap_writer import QosOffer
-from .node_util import float_range, message_class, string_list
+from calibration_interfaces import mcap_reader
+from calibration_interfaces.contract import BY_NAME
+from calibration_interfaces.mcap_reader import QosOffer
+from calibration_interfaces.node_util import declare_settings, message_class
+
+from .node_settings import PlayerSettings
 
 CLOCK_TOPIC = '/clock'
 _MIN_WAIT_NS = 100_000          # 0.1 ms: shorter waits are not worth a timer round trip
@@ -83,9 +83,7 @@ def playback_qos(offers: tuple[QosOffer, ...], topic: str) -> QoSProfile:
     if len(pairs) == 1:
         rel, dur = pairs.pop()
     elif topic in BY_NAME:
-        c = BY_NAME[topic]
-        rel = 'best_effort' if c.sensor else 'reliable'
-        dur = 'transient_local' if c.latched else 'volatile'
+        rel, dur = BY_NAME[topic].qos.reliability.value, BY_NAME[topic].qos.durability.value
     else:
         rel, dur = 'reliable', 'volatile'
     latched = dur == 'transient_local'
@@ -101,7 +99,7 @@ class BagPlayerNode(Node):
 
     Attributes
     ----------
-    summary : calibration_bringup.bag.BagSummary
+    summary : calibration_interfaces.mcap_reader.BagSummary
         What the bag holds.
     published : dict of str to int
         Messages published per topic (over all loops).
@@ -111,30 +109,18 @@ class BagPlayerNode(Node):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('bag_player', **kwargs)
-        p = self.declare_parameter
-        p('bag', '', ParameterDescriptor(description='The .mcap file to play'))
-        p('rate', 1.0, float_range('Speed factor (0 = as fast as possible)', 0.0, 1000.0))
-        p('topics', Parameter.Type.STRING_ARRAY, ParameterDescriptor(description='Topics to play (empty: all)'))
-        p('publish_clock', True, ParameterDescriptor(
-            description='Publish /clock from the log times (the recorded /clock is then not played)'))
-        p('clock_rate', 100.0, float_range('/clock frequency [Hz]', 0.1, 10000.0))
-        p('loop', False, ParameterDescriptor(description='Start again at the end of the bag'))
-        p('start_offset', 0.0, float_range('Skip the first seconds of the bag [s]', 0.0, 1e9))
-        p('delay', 0.0, float_range('Wall time to wait before playing [s]', 0.0, 3600.0))
-        p('start_paused', False, ParameterDescriptor(description='Wait for ~/resume before playing'))
-
-        gp = lambda name: self.get_parameter(name).value
-        path = gp('bag')
+        s = self.settings = declare_settings(self, PlayerSettings)
+        path = s.bag
         if not path:
             raise ValueError("parameter 'bag' is empty: give the .mcap file to play")
-        self.summary = bagmod.summary(path)
+        self.summary = mcap_reader.summary(path)
         if not self.summary.complete:
             self.get_logger().warning(f'{path} was not finished ({self.summary.damage}); playing its '
                                       f'{self.summary.message_count} complete messages in file order')
-        self._rate = float(gp('rate'))
-        self._loop = bool(gp('loop'))
-        self._publish_clock = bool(gp('publish_clock'))
-        wanted = string_list(self, 'topics')
+        self._rate = s.rate
+        self._loop = s.loop
+        self._publish_clock = s.publish_clock
+        wanted = [t for t in s.topics if t]
         missing = [t for t in wanted if t not in self.summary.topics]
         if missing:
             self.get_logger().warning(f'not in the bag, not played: {missing}')
@@ -155,28 +141,28 @@ class BagPlayerNode(Node):
         self.published = {t: 0 for t in self.publishers_by_topic}
         self._clock_pub = self.create_publisher(ClockMsg, CLOCK_TOPIC, 10) if self._publish_clock else None
 
-        self._offset_ns = int(gp('start_offset') * 1e9)
+        self._offset_ns = int(s.start_offset * 1e9)
         self._t0_bag = self.summary.start_ns + self._offset_ns   # bag time played at _t0_wall
         self._t0_wall = 0
-        self._messages: Iterator[bagmod.RawMessage] | None = None
-        self._next: bagmod.RawMessage | None = None
+        self._messages: Iterator[mcap_reader.RawMessage] | None = None
+        self._next: mcap_reader.RawMessage | None = None
         self._last_log_ns = self._t0_bag
         self._last_clock_ns = self._t0_bag
-        self._clock_period_ns = int(1e9 / gp('clock_rate'))
+        self._clock_period_ns = int(1e9 / s.clock_rate)
         self._playing = False
         self.finished = Future()
 
         # Steady timers: the player keeps wall time even if the node is told to use sim time.
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._timer = self.create_timer(0.001, self._tick, clock=steady, autostart=False)
-        self._clock_timer = (self.create_timer(1.0 / gp('clock_rate'), self._tick_clock, clock=steady,
+        self._clock_timer = (self.create_timer(1.0 / s.clock_rate, self._tick_clock, clock=steady,
                                                autostart=False)
                              if self._clock_pub is not None and self._rate > 0 else None)
         self.create_service(Trigger, '~/resume', self._on_resume)
-        self._paused = bool(gp('start_paused'))
+        self._paused = s.start_paused
         self._delay_timer = None
         if not self._paused:
-            self._start_after(gp('delay'))
+            self._start_after(s.delay)
         self.get_logger().info(
             f'{path}: {len(self.publishers_by_topic)} topics, {self.summary.message_count} messages, '
             f'{self.summary.duration_s:.1f} s, rate {self._rate:g}' + (', paused' if self._paused else ''))
@@ -191,7 +177,7 @@ class BagPlayerNode(Node):
         if not self._paused:
             return False
         self._paused = False
-        self._start_after(self.get_parameter('delay').value)
+        self._start_after(self.settings.delay)
         return True
 
     def _on_resume(self, _req: Trigger.Request, res: Trigger.Response) -> Trigger.Response:
@@ -210,7 +196,7 @@ class BagPlayerNode(Node):
         self._delay_timer = self.create_timer(delay, fire, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     def _start(self) -> None:
-        self._messages = bagmod.read_raw(self.summary.path, list(self.publishers_by_topic),
+        self._messages = mcap_reader.read_raw(self.summary.path, list(self.publishers_by_topic),
                                          self._t0_bag if self._offset_ns else None)
         self._next = next(self._messages, None)
         self._t0_wall = time.monotonic_ns()
@@ -220,7 +206,7 @@ class BagPlayerNode(Node):
             self._clock_timer.reset()
         self._wake_in(0)
 
-    def _due_ns(self, msg: bagmod.RawMessage) -> int:
+    def _due_ns(self, msg: mcap_reader.RawMessage) -> int:
         return self._t0_wall + int((msg.log_time_ns - self._t0_bag) / self._rate)
 
     def _wake_in(self, ns: int) -> None:
@@ -247,7 +233,7 @@ class BagPlayerNode(Node):
         if self._playing:
             self._wake_in(wait)
 
-    def _publish(self, msg: bagmod.RawMessage) -> None:
+    def _publish(self, msg: mcap_reader.RawMessage) -> None:
         self.publishers_by_topic[msg.topic].publish(msg.data)
         self.published[msg.topic] += 1
         self._last_log_ns = msg.log_time_ns

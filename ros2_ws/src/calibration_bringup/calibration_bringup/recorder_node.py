@@ -18,7 +18,7 @@ complete chunk; ``flush_period`` bounds how much is lost.
 
 Subscriptions
 -------------
-``topics`` (default: every topic of the contract, :mod:`calibration_bringup.contract`)
+``topics`` (default: every topic of the contract, :mod:`calibration_interfaces.contract`)
     Any type; raw.
 
 Parameters
@@ -54,17 +54,18 @@ from pathlib import Path
 from typing import Any
 
 import rclpy
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.executors import ExternalShutdownException
 from rclpy.logging import get_logger
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile,
                        ReliabilityPolicy)
 
-from .contract import BY_NAME, CONTRACT, IMAGE_TOPICS, ContractTopic
-from .mcap_writer import COMPRESSIONS, McapBagWriter, QosOffer
-from .node_util import float_range, int_range, message_class, string_list
+from calibration_interfaces.contract import BY_NAME, IMAGE_TOPICS, ContractTopic
+from calibration_interfaces.mcap_reader import QosOffer
+from calibration_interfaces.node_util import declare_settings, message_class, qos_profile
+
+from .mcap_writer import McapBagWriter
+from .node_settings import RecorderSettings
 
 
 def qos_offer(profile: QoSProfile) -> QosOffer:
@@ -105,34 +106,18 @@ class RecorderNode(Node):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('mcap_recorder', **kwargs)
-        p = self.declare_parameter
-        p('output', '', ParameterDescriptor(
-            description="Path of the .mcap file; '' = recording_<YYYYmmdd-HHMMSS>.mcap here"))
-        p('overwrite', True, ParameterDescriptor(description='Replace an existing output file (false: refuse)'))
-        p('topics', [t.name for t in CONTRACT], ParameterDescriptor(
-            description='Topics to record (default: the topic contract); others: type discovered'))
-        p('exclude', Parameter.Type.STRING_ARRAY, ParameterDescriptor(description='Topics left out'))
-        p('exclude_images', False, ParameterDescriptor(description='Leave out ' + ', '.join(IMAGE_TOPICS)))
-        p('compression', 'zstd', ParameterDescriptor(description="Chunk compression: " + ' | '.join(COMPRESSIONS)))
-        p('chunk_size', 1 << 20, int_range('Uncompressed bytes per chunk (a SIGKILL loses at most one)',
-                                          4096, 1 << 28))
-        p('flush_period', 1.0, float_range('Write a partial chunk after this long [s] (0: only full chunks)',
-                                        0.0, 3600.0))
-        p('discovery_period', 0.5, float_range('Period of the check for new publishers [s]', 0.01, 60.0))
-        p('queue_depth', 100, int_range('Subscription queue depth (keep last)', 1, 100000))
-
-        gp = lambda name: self.get_parameter(name).value
-        output = gp('output') or time.strftime('recording_%Y%m%d-%H%M%S.mcap')
+        s = self.settings = declare_settings(self, RecorderSettings)
+        output = s.output or time.strftime('recording_%Y%m%d-%H%M%S.mcap')
         self.output = Path(output).expanduser().resolve()
         if self.output.exists():
-            if not gp('overwrite'):
+            if not s.overwrite:
                 raise FileExistsError(f'output {str(self.output)!r} exists (overwrite is false)')
             self.get_logger().warning(f'replacing {self.output}')
-        excluded = set(string_list(self, 'exclude')) | (set(IMAGE_TOPICS) if gp('exclude_images') else set())
-        self.wanted = [self.resolve_topic_name(t) for t in string_list(self, 'topics')]
+        excluded = set(s.exclude) | (set(IMAGE_TOPICS) if s.exclude_images else set())
+        self.wanted = [self.resolve_topic_name(t) for t in s.topics if t]
         self.wanted = [t for t in dict.fromkeys(self.wanted) if t not in excluded]
-        self._depth = gp('queue_depth')
-        self._writer = McapBagWriter(self.output, compression=gp('compression'), chunk_size=gp('chunk_size'))
+        self._depth = s.queue_depth
+        self._writer = McapBagWriter(self.output, compression=s.compression, chunk_size=s.chunk_size)
         self.counts = self._writer.counts
         self._subs_by_topic: dict[str, Any] = {}
         self._early: dict[str, tuple[Any, QoSProfile]] = {}
@@ -141,9 +126,9 @@ class RecorderNode(Node):
             if topic in BY_NAME:
                 self._subscribe_early(BY_NAME[topic])
 
-        self._discovery = self.create_timer(gp('discovery_period'), self._discover)
-        self._flusher = (self.create_timer(gp('flush_period'), self._writer.flush)
-                         if gp('flush_period') > 0 else None)
+        self._discovery = self.create_timer(s.discovery_period, self._discover)
+        self._flusher = (self.create_timer(s.flush_period, self._writer.flush)
+                         if s.flush_period > 0 else None)
         self.get_logger().info(f'recording {len(self.wanted)} topics to {self.output}')
         self._discover()
 
@@ -163,9 +148,7 @@ class RecorderNode(Node):
             cls = message_class(topic.type)
         except ImportError:
             return                              # discovery will report it
-        qos = QoSProfile(depth=self._depth,
-                         reliability=ReliabilityPolicy.BEST_EFFORT if topic.sensor else ReliabilityPolicy.RELIABLE,
-                         durability=DurabilityPolicy.TRANSIENT_LOCAL if topic.latched else DurabilityPolicy.VOLATILE)
+        qos = qos_profile(topic.qos, depth=self._depth)
         sub = self.create_subscription(cls, topic.name, functools.partial(self._on_message, topic.name), qos, raw=True)
         self._early[topic.name] = (sub, qos)
 

@@ -8,6 +8,7 @@ it) and prints the summary. ``scripts/run_calibration.sh`` calls it after every 
 Usage::
 
     calibration_report --bag DIR/calibration.mcap [--output DIR] [--title TEXT] [--wall-seconds S]
+                       [--params-file estimator.yaml] [--noise-model pose_dependent|constant]
 """
 from __future__ import annotations
 
@@ -19,14 +20,23 @@ from pathlib import Path
 from dh_estimator.evaluate import (Evaluation, EvaluationSettings, evaluate_bag, plot_rows, summary_text,
                                    write_csv)
 
-from . import bag
+from body_schema.noise import NOISE_MODELS
+from calibration_interfaces import mcap_reader
+from calibration_interfaces.parameters import read_params_file
 
-__all__ = ['bag_contents', 'render_report', 'main']
+__all__ = ['bag_contents', 'render_report', 'estimator_params_file', 'main']
+
+
+def estimator_params_file() -> Path:
+    """The installed ``config/estimator.yaml`` of this package (the launcher's estimator settings)."""
+    from ament_index_python.packages import get_package_share_directory
+
+    return Path(get_package_share_directory('calibration_bringup')) / 'config' / 'estimator.yaml'
 
 
 def bag_contents(path: str | Path) -> list[tuple[str, str, int]]:
     """(topic, type, message count) of every channel in an MCAP file, sorted by topic."""
-    return sorted((t.name, t.type, t.count) for t in bag.summary(path).topics.values())
+    return sorted((t.name, t.type, t.count) for t in mcap_reader.summary(path).topics.values())
 
 
 def render_report(ev: Evaluation, bag: Path, title: str, wall_seconds: float | None) -> str:
@@ -70,12 +80,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument('--output', type=Path, help='report directory (default: the bag\'s)')
     ap.add_argument('--title', default='', help='one line describing the run')
     ap.add_argument('--wall-seconds', type=float, help='wall time of the run, for the report')
-    ap.add_argument('--noise-model', default='message', choices=['message', 'constant'],
-                    help='the estimator\'s noise setting during the run (the re-run uses the same)')
+    ap.add_argument('--params-file', type=Path,
+                    help="the estimator's parameter file of the run (the re-run uses the same settings); "
+                         "default: this package's config/estimator.yaml, which scripts/run_calibration.sh uses")
+    ap.add_argument('--noise-model', choices=list(NOISE_MODELS),
+                    help="the estimator's noise_model during the run, if the launcher overrode the file's")
     args = ap.parse_args(argv)
     out = args.output or args.bag.parent
     try:
-        ev = evaluate_bag(args.bag, EvaluationSettings(noise_model=args.noise_model))
+        values = dict(read_params_file(args.params_file or estimator_params_file(), 'dh_estimator'))
+        if args.noise_model is not None:
+            values['noise_model'] = args.noise_model
+        ev = evaluate_bag(args.bag, EvaluationSettings.from_parameters(values))
         write_csv(ev.rows, out / 'metrics.csv')
         plot_rows(ev.rows, out, title=args.title)
         text = render_report(ev, args.bag, args.title or args.bag.stem, args.wall_seconds)

@@ -37,9 +37,12 @@ def test_two_methods_run_resume_and_report(tmp_path: Path) -> None:
     # Fair comparison: the same true robot and initial guess, hence the same initial error.
     assert runs['AL-CN'][0]['position_mm'] == runs['R'][0]['position_mm']
     assert float(runs['R'][0]['position_mm']) > 10.0
-    accepted = [r for r in runs['R'] if r['outcome'] == 'accepted']
-    if accepted:     # an accepted update moves the estimate
-        assert accepted[0]['position_mm'] != runs['R'][0]['position_mm']
+    # The estimate moves exactly at the accepted updates (the table is scored when the iteration's
+    # record arrives, after its update); failed and rejected attempts leave it alone.
+    for method, rows in runs.items():
+        moved = [rows[i]['position_mm'] != rows[i - 1]['position_mm'] for i in range(1, len(rows))]
+        assert moved == [r['outcome'] == 'accepted' for r in rows[1:]], (method, rows)
+    assert sum(r['outcome'] == 'accepted' for rows in runs.values() for r in rows) >= 1, runs
 
     combined = ex.read_rows(tmp_path / 'metrics.csv')
     assert len(combined) == 2 * (ITERATIONS + 1)

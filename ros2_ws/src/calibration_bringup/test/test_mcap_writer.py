@@ -8,10 +8,10 @@ from ament_index_python.packages import get_package_share_directory
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
-from calibration_bringup import bag
-from calibration_bringup.mcap_writer import (INFINITE_NS, SEPARATOR, DefinitionNotFoundError,
-                                             McapBagWriter, QosOffer, offered_qos_yaml,
-                                             parse_offered_qos, schema_for, schema_text)
+from calibration_bringup.mcap_writer import (SEPARATOR, DefinitionNotFoundError, McapBagWriter, offered_qos_yaml,
+                                             schema_for, schema_text)
+from calibration_interfaces import mcap_reader as bag
+from calibration_interfaces.mcap_reader import INFINITE_NS, QosOffer, parse_offered_qos
 
 # CDR of std_msgs/String 'hi' and of an empty-named JointState would need rclpy to serialize;
 # these literal messages keep the module pure (little-endian CDR header + fields).

@@ -15,8 +15,9 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Image, JointState
 from std_msgs.msg import Float64MultiArray, String
 
-from calibration_bringup import bag
-from calibration_bringup.mcap_writer import McapBagWriter, QosOffer
+from calibration_bringup.mcap_writer import McapBagWriter
+from calibration_interfaces import mcap_reader as bag
+from calibration_interfaces.mcap_reader import QosOffer
 from calibration_bringup.player_node import BagPlayerNode, playback_qos
 from calibration_bringup.recorder_node import RecorderNode
 

@@ -7,7 +7,6 @@ export of the calibrated model as a DH-table YAML with one-sigma uncertainties a
 """
 from __future__ import annotations
 
-import enum
 import os
 import tempfile
 from dataclasses import asdict, dataclass
@@ -20,16 +19,11 @@ from numpy.typing import ArrayLike, NDArray
 from body_schema import ArmModel
 from body_schema import ekf as ekf_mod
 from body_schema.urdf import model_urdf
+from calibration_interfaces.dh_file import write_dh_file
+from calibration_interfaces.outcome import Outcome
+from calibration_interfaces.parameters import setting
 
-__all__ = ['Outcome', 'EstimatorSettings', 'OnlineEstimator']
-
-
-class Outcome(str, enum.Enum):
-    """What became of one offered observation."""
-
-    ACCEPTED = 'accepted'     # EKF updated
-    REJECTED = 'rejected'     # outside the Mahalanobis gate; state unchanged
-    DUPLICATE = 'duplicate'   # same configuration as the previous attempt; not new evidence
+__all__ = ['EstimatorSettings', 'OnlineEstimator']
 
 
 @dataclass(frozen=True)
@@ -53,12 +47,13 @@ class EstimatorSettings:
         early gate would throw away the most informative samples.
     """
 
-    q_length: float = 0.0
-    q_angle: float = 0.0
-    gate_probability: float = 0.999
-    iterations: int = 1
-    same_config_tol: float = 1e-3
-    gate_warmup: int = 10
+    q_length: float = setting(0.0, 'Process-noise variance per update for a, d [m^2]', (0.0, 1.0))
+    q_angle: float = setting(0.0, 'Process-noise variance per update for alpha, offset [rad^2]', (0.0, 1.0))
+    gate_probability: float = setting(0.999, 'Chi-square gate probability (0 disables gating)', (0.0, 0.999999))
+    iterations: int = setting(1, "Linearisations per update (1: the paper's EKF; >1: iterated EKF)", (1, 50))
+    same_config_tol: float = setting(1e-3, 'Closer than this to the previous attempt = same configuration [rad]',
+                                     (0.0, 0.5), name='same_config_tolerance')
+    gate_warmup: int = setting(10, 'Accepted updates before the gate may reject', (0, 100000))
 
     def __post_init__(self) -> None:
         if self.q_length < 0 or self.q_angle < 0:
@@ -185,25 +180,12 @@ class OnlineEstimator:
         return self.model.with_dh(self.dh)
 
     def export(self, directory: str | Path, stem: str = 'calibrated') -> tuple[Path, Path]:
-        """Write ``<stem>_dh.yaml`` (table with one-sigma) and ``<stem>.urdf``; return both paths."""
+        """Write ``<stem>_dh.yaml`` (table with one-sigma, :mod:`calibration_interfaces.dh_file`) and
+        ``<stem>.urdf``; return both paths."""
         directory = Path(directory)
-        directory.mkdir(parents=True, exist_ok=True)
         sigma = np.sqrt(np.diag(self.P)).reshape(self.model.dh.shape)
-        dh = self.dh
-        doc = {
-            'robot': self.model.name,
-            'convention': 'standard DH: H = Rz(q + offset) Tz(d) Tx(a) Rx(alpha); a, d in m; '
-                          'alpha, offset in deg',
-            'updates': self.counters,
-            'joints': [{
-                'name': name,
-                'dh': [float(dh[i, 0]), float(dh[i, 1]), float(np.degrees(dh[i, 2])), float(np.degrees(dh[i, 3]))],
-                'sigma': [float(sigma[i, 0]), float(sigma[i, 1]), float(np.degrees(sigma[i, 2])),
-                          float(np.degrees(sigma[i, 3]))],
-            } for i, name in enumerate(self.model.joint_names)],
-        }
-        yaml_path = directory / f'{stem}_dh.yaml'
-        yaml_path.write_text(yaml.safe_dump(doc, sort_keys=False))
+        yaml_path = write_dh_file(directory / f'{stem}_dh.yaml', self.dh, self.model.joint_names,
+                                  self.model.name, sigma, extra={'updates': self.counters})
         urdf_path = directory / f'{stem}.urdf'
         urdf_path.write_text(model_urdf(self.calibrated_model()))
         return yaml_path, urdf_path

@@ -2,9 +2,10 @@
 
 Reads an MCAP bag written by the recorder (``calibration_bringup.recorder_node``), feeds its
 ``/joint_states``, ``/arm/command`` and ``/hand_pose`` messages, in recorded order, through the
-same :class:`~dh_estimator.pairing.ObservationPairer` and :class:`~dh_estimator.estimator.OnlineEstimator`
-the node uses, with the recorded settings or others (``--noise-model constant`` re-runs the paper's
-CN baseline on the very same images), and scores the estimate after every iteration (one
+same :class:`~dh_estimator.pairing.MessageFeeder`, :class:`~dh_estimator.pairing.ObservationPairer` and
+:class:`~dh_estimator.estimator.OnlineEstimator` the node uses, with the run's settings (``--params-file``,
+the estimator's parameter file) or others (``--noise-model constant`` re-runs the paper's CN
+baseline on the very same images), and scores the estimate after every iteration (one
 ``/calibration/progress`` record each) against ``/body_schema/true`` with the paper's metrics:
 average position and orientation error over 1000 configurations of the calibration box.
 
@@ -13,10 +14,11 @@ equal settings the two agree (the test suite checks it).
 
 Usage::
 
-    evaluate BAG.mcap --output DIR [--noise-model message|constant] [--iterations 5] ...
+    evaluate BAG.mcap --output DIR [--params-file estimator.yaml] [--noise-model pose_dependent|constant] ...
 
 writes ``DIR/metrics.csv``, ``DIR/error_vs_iteration.png`` and ``DIR/error_vs_movement.png``
-and prints a summary. No rclpy is needed: messages are decoded with ``mcap-ros2-support``.
+and prints a summary. No rclpy is needed: messages are decoded with ``mcap-ros2-support``
+(:mod:`calibration_interfaces.mcap_reader`, which also reads a killed recording).
 """
 from __future__ import annotations
 
@@ -24,7 +26,7 @@ import argparse
 import csv
 import json
 import sys
-from collections.abc import Iterator, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -34,11 +36,15 @@ from numpy.typing import NDArray
 
 from body_schema import load_robot, sampling
 from body_schema.metrics import PoseErrorEvaluator
-from body_schema.noise import ConstantNoise
+from body_schema.noise import NOISE_MODELS
+from calibration_interfaces import mcap_reader
+from calibration_interfaces.messages import msg_to_covariance, msg_to_table
+from calibration_interfaces.noise import NoiseSettings
+from calibration_interfaces.parameters import read_params_file
 
 from .estimator import EstimatorSettings, OnlineEstimator
-from .messages import joints_in_order, msg_to_covariance, msg_to_table, pose_msg_to_matrix, stamp_to_seconds
-from .pairing import ObservationPairer, PairingSettings
+from .node_settings import settings_from_parameters
+from .pairing import MessageError, MessageFeeder, ObservationPairer, PairingSettings
 
 __all__ = ['BagFormatError', 'EvaluationSettings', 'IterationRow', 'Evaluation', 'evaluate_bag',
            'write_csv', 'plot_rows', 'main']
@@ -54,27 +60,31 @@ class BagFormatError(ValueError):
 
 @dataclass(frozen=True)
 class EvaluationSettings:
-    """How the offline filter runs. Defaults equal the estimator node's defaults.
+    """How the offline filter runs. Defaults equal the estimator node's defaults;
+    :meth:`from_parameters` takes a run's parameters (e.g. ``config/estimator.yaml``).
 
     ``initial`` is 'recorded' (the first estimate and covariance in the bag, i.e. the online
     run's initial guess), 'perturbed' (seeded draw with ``initial_seed``, as the node does) or
-    'nominal'. ``noise_model`` is 'message' (the recorded /hand_pose covariances) or 'constant'.
+    'nominal'. ``noise.noise_model`` 'pose_dependent' uses the recorded /hand_pose covariances,
+    'constant' the CN baseline.
     """
 
     robot: str = 'icub_right_arm'
     initial: str = 'recorded'
     initial_seed: int = 0
-    noise_model: str = 'message'
-    cn_sigma_pos: float = ConstantNoise().sigma_pos
-    cn_sigma_rot_deg: float = float(np.degrees(ConstantNoise().sigma_rot))
-    estimator: EstimatorSettings = field(default_factory=lambda: EstimatorSettings(iterations=5))
+    noise: NoiseSettings = NoiseSettings()
+    estimator: EstimatorSettings = field(default_factory=EstimatorSettings)
     pairing: PairingSettings = field(default_factory=PairingSettings)
 
     def __post_init__(self) -> None:
         if self.initial not in ('recorded', 'perturbed', 'nominal'):
             raise ValueError(f"initial must be 'recorded', 'perturbed' or 'nominal', got {self.initial!r}")
-        if self.noise_model not in ('message', 'constant'):
-            raise ValueError(f"noise_model must be 'message' or 'constant', got {self.noise_model!r}")
+
+    @classmethod
+    def from_parameters(cls, values: Mapping[str, Any], initial: str = 'recorded') -> 'EvaluationSettings':
+        """The settings of an estimator node run with parameters ``values`` (by parameter name)."""
+        node, noise, estimator, pairing = settings_from_parameters(values)
+        return cls(node.robot, initial, node.initial_seed, noise, estimator, pairing)
 
 
 @dataclass(frozen=True)
@@ -112,16 +122,6 @@ class Evaluation:
         return float(np.max(np.abs(self.final_dh - self.online_final_dh)))
 
 
-def _messages(path: Path, topics: Sequence[str]) -> Iterator[tuple[str, int, Any]]:
-    from mcap.reader import make_reader             # imported here: plotting-only users skip it
-    from mcap_ros2.decoder import DecoderFactory
-
-    with path.open('rb') as f:
-        reader = make_reader(f, decoder_factories=[DecoderFactory()])
-        for _, channel, message, msg in reader.iter_decoded_messages(topics=list(topics), log_time_order=True):
-            yield channel.topic, message.log_time, msg
-
-
 def evaluate_bag(path: str | Path, settings: EvaluationSettings = EvaluationSettings()) -> Evaluation:
     """Re-run the filter on a bag and score every iteration.
 
@@ -147,8 +147,6 @@ def evaluate_bag(path: str | Path, settings: EvaluationSettings = EvaluationSett
     if not path.is_file():
         raise FileNotFoundError(f'no bag at {path}')
     model = load_robot(settings.robot)
-    names = model.joint_names
-    cn = ConstantNoise(settings.cn_sigma_pos, np.radians(settings.cn_sigma_rot_deg))
     x0: NDArray[np.float64] | None = None
     P0: NDArray[np.float64] | None = None  # noqa: N806
     if settings.initial == 'nominal':
@@ -159,7 +157,7 @@ def evaluate_bag(path: str | Path, settings: EvaluationSettings = EvaluationSett
         P0 = sampling.initial_covariance(model.n_joints)  # noqa: N806
 
     estimator: OnlineEstimator | None = None
-    pairer: ObservationPairer | None = None
+    feeder: MessageFeeder | None = None
     evaluator: PoseErrorEvaluator | None = None
     true_dh = online = None
     started = False                 # an update status seen: later estimates are not the initial one
@@ -168,30 +166,18 @@ def evaluate_bag(path: str | Path, settings: EvaluationSettings = EvaluationSett
     backlog: list[tuple[str, Any]] = []     # inputs that arrive before the filter can start
 
     def start() -> None:
-        nonlocal estimator, pairer
+        nonlocal estimator, feeder
         estimator = OnlineEstimator(model, x0, P0, settings.estimator)
-        pairer = ObservationPairer(estimator, settings.pairing)
+        feeder = MessageFeeder(ObservationPairer(estimator, settings.pairing), model.joint_names,
+                               settings.noise.build() if settings.noise.constant else None)
 
     def feed(topic: str, msg: Any) -> None:
-        if topic == '/joint_states':
-            q = joints_in_order(msg.name, msg.position, names)
-            if q is not None and np.all(np.isfinite(q)):
-                pairer.joint_state(stamp_to_seconds(msg.header.stamp), q)
-        elif topic == '/arm/command':
-            if msg.points:
-                q = joints_in_order(msg.joint_names, msg.points[-1].positions, names)
-                if q is not None:
-                    pairer.command(q)
-        else:   # /hand_pose
-            try:
-                pose = pose_msg_to_matrix(msg.pose.pose)
-            except ValueError:
-                return          # the node drops it too
-            R = cn.covariance(0.0, 45.0) if settings.noise_model == 'constant' \
-                else np.array(msg.pose.covariance, dtype=float).reshape(6, 6)  # noqa: N806
-            pairer.hand_pose(stamp_to_seconds(msg.header.stamp), pose, R)
+        try:
+            feeder.feed(topic, msg)
+        except MessageError:
+            pass            # the node ignores it too (with a warning)
 
-    for topic, _, msg in _messages(path, TOPICS):
+    for topic, _, msg in mcap_reader.read_messages(path, TOPICS):
         if topic == '/body_schema/true':
             true_dh = msg_to_table(msg, model.n_joints)
             evaluator = PoseErrorEvaluator(model.base, true_dh, model.calibration_box)
@@ -312,33 +298,38 @@ def summary_text(ev: Evaluation) -> str:
 
 
 def _parser() -> argparse.ArgumentParser:
-    d = EvaluationSettings()
     ap = argparse.ArgumentParser(prog='evaluate', description=__doc__.split('\n\n')[0],
                                  formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     ap.add_argument('bag', type=Path, help='MCAP file written by the recorder')
     ap.add_argument('--output', type=Path, help='directory for metrics.csv and the plots (default: next to the bag)')
-    ap.add_argument('--robot', default=d.robot, help='packaged robot name or YAML path')
-    ap.add_argument('--initial', default=d.initial, choices=['recorded', 'perturbed', 'nominal'])
-    ap.add_argument('--initial-seed', type=int, default=d.initial_seed)
-    ap.add_argument('--noise-model', default=d.noise_model, choices=['message', 'constant'])
-    ap.add_argument('--cn-sigma-pos', type=float, default=d.cn_sigma_pos, help='[m]')
-    ap.add_argument('--cn-sigma-rot-deg', type=float, default=d.cn_sigma_rot_deg, help='[deg]')
-    ap.add_argument('--iterations', type=int, default=d.estimator.iterations, help='linearisations per update')
-    ap.add_argument('--gate-probability', type=float, default=d.estimator.gate_probability)
-    ap.add_argument('--gate-warmup', type=int, default=d.estimator.gate_warmup)
+    ap.add_argument('--params-file', type=Path,
+                    help="the estimator's parameter file of the run (its dh_estimator section); "
+                         'default: the node defaults')
+    ap.add_argument('--initial', default='recorded', choices=['recorded', 'perturbed', 'nominal'])
+    # Overrides of the run's parameters (None: keep the file's or the default value).
+    ap.add_argument('--robot', help='packaged robot name or YAML path')
+    ap.add_argument('--initial-seed', type=int)
+    ap.add_argument('--noise-model', choices=list(NOISE_MODELS))
+    ap.add_argument('--cn-sigma-pos', type=float, help='[m]')
+    ap.add_argument('--cn-sigma-rot-deg', type=float, help='[deg]')
+    ap.add_argument('--iterations', type=int, help='linearisations per update')
+    ap.add_argument('--gate-probability', type=float)
+    ap.add_argument('--gate-warmup', type=int)
     ap.add_argument('--no-plots', action='store_true', help='write the CSV only')
     return ap
+
+
+_OVERRIDES = ('robot', 'initial_seed', 'noise_model', 'cn_sigma_pos', 'cn_sigma_rot_deg', 'iterations',
+              'gate_probability', 'gate_warmup')
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Console entry point ``evaluate``; returns the exit status."""
     args = _parser().parse_args(argv)
     try:
-        settings = EvaluationSettings(
-            robot=args.robot, initial=args.initial, initial_seed=args.initial_seed, noise_model=args.noise_model,
-            cn_sigma_pos=args.cn_sigma_pos, cn_sigma_rot_deg=args.cn_sigma_rot_deg,
-            estimator=EstimatorSettings(iterations=args.iterations, gate_probability=args.gate_probability,
-                                        gate_warmup=args.gate_warmup))
+        values = dict(read_params_file(args.params_file, 'dh_estimator')) if args.params_file else {}
+        values.update({k: getattr(args, k) for k in _OVERRIDES if getattr(args, k) is not None})
+        settings = EvaluationSettings.from_parameters(values, initial=args.initial)
         ev = evaluate_bag(args.bag, settings)
     except (FileNotFoundError, ValueError) as exc:
         print(f'evaluate: {exc}', file=sys.stderr)
@@ -346,7 +337,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     out = args.output or args.bag.parent
     paths = [write_csv(ev.rows, out / 'metrics.csv')]
     if not args.no_plots:
-        paths += plot_rows(ev.rows, out, title=f'{args.bag.name}: {ev.strategy}, noise {args.noise_model}')
+        paths += plot_rows(ev.rows, out, title=f'{args.bag.name}: {ev.strategy}, noise {settings.noise.noise_model}')
     print(summary_text(ev))
     print('wrote ' + ' '.join(str(p) for p in paths))
     return 0

@@ -5,7 +5,8 @@ import yaml
 
 import body_schema
 from body_schema import ekf, sampling
-from dh_estimator.estimator import EstimatorSettings, OnlineEstimator, Outcome
+from calibration_interfaces.outcome import Outcome
+from dh_estimator.estimator import EstimatorSettings, OnlineEstimator
 from dh_estimator.joint_buffer import JointStateBuffer, StampOutOfRange
 
 

@@ -8,7 +8,8 @@ from std_msgs.msg import Float64MultiArray
 
 import body_schema
 from dh_estimator.estimator_node import EstimatorNode
-from dh_estimator.messages import msg_to_table
+from calibration_interfaces.messages import msg_to_table
+from calibration_interfaces.node_util import qos_profile
 
 ARM = body_schema.load_robot()
 
@@ -38,8 +39,8 @@ def _setup(ros, **params):
     js = probe.create_publisher(JointState, '/joint_states', 10)
     hp = probe.create_publisher(PoseWithCovarianceStamped, '/hand_pose', 10)
     estimates = []
-    from dh_estimator.estimator_node import LATCHED
-    probe.create_subscription(Float64MultiArray, '/body_schema/estimate', estimates.append, LATCHED)
+    probe.create_subscription(Float64MultiArray, '/body_schema/estimate', estimates.append,
+                              qos_profile('/body_schema/estimate'))
     ros.spin_until(lambda: js.get_subscription_count() and hp.get_subscription_count() and estimates,
                    10.0, 'discovery and the initial estimate')
     return node, js, hp, estimates
@@ -116,3 +117,19 @@ def test_only_commanded_targets_are_attempts(ros):
     _feed_static(ros, js, target, 1.0, 2.0)
     hp.publish(_hand_pose(1.9, ARM.forward_kinematics(target)))
     ros.spin_until(lambda: node.estimator.counters['updates'] == 1, 5.0, 'the update at the target')
+
+
+def test_initial_guess_from_an_exported_file(ros, tmp_path):
+    node, js, hp, _ = _setup(ros, initial_seed=7)
+    yaml_path, _ = node.estimator.export(tmp_path)
+    again = ros.add(EstimatorNode(context=ros.context, parameter_overrides=[
+        Parameter('initial_guess', value='file'), Parameter('initial_dh_file', value=str(yaml_path)),
+        Parameter('export_on_shutdown', value=False)]))
+    np.testing.assert_allclose(again.estimator.dh, node.estimator.dh, atol=1e-12)
+
+
+def test_unknown_choices_are_refused_with_the_value(ros):
+    import pytest
+
+    with pytest.raises(ValueError, match="noise_model: 'message' is not one of"):
+        EstimatorNode(context=ros.context, parameter_overrides=[Parameter('noise_model', value='message')])

@@ -5,7 +5,7 @@ import pytest
 from body_schema import load_robot, sampling
 from body_schema.noise import ConstantNoise
 from dh_estimator.estimator import EstimatorSettings, OnlineEstimator
-from dh_estimator.pairing import ObservationPairer, PairingSettings
+from dh_estimator.pairing import MessageError, MessageFeeder, ObservationPairer, PairingSettings
 
 R = ConstantNoise().covariance(0.0, 45.0)
 
@@ -63,3 +63,52 @@ def test_moving_arm_and_uncovered_stamps_are_reported_not_used(setup):
     [b] = pairer.hand_pose(5.0, model.forward_kinematics(q), R)
     assert b.outcome == 'dropped' and b.joints is None
     assert est.counters['updates'] == 0
+
+
+class _Msg:
+    """A message-shaped object (what rclpy and the bag decoder both give)."""
+
+    def __init__(self, **fields):
+        self.__dict__.update(fields)
+
+
+def _stamp(t):
+    return _Msg(sec=int(t), nanosec=int(round((t % 1) * 1e9)))
+
+
+def test_feeder_reorders_joints_and_refuses_bad_messages(setup):
+    model, est, pairer = setup
+    feeder = MessageFeeder(pairer, model.joint_names)
+    q = np.radians([-30, 30, 0, 45, 0, 0, 0])
+    order = list(reversed(model.joint_names))
+    for t in np.arange(0.0, 1.0, 0.01):
+        feeder.feed('/joint_states', _Msg(name=order, position=list(q[::-1]), header=_Msg(stamp=_stamp(t))))
+    np.testing.assert_allclose(pairer.buffer.latest[1], q)
+    feeder.feed('/arm/command', _Msg(joint_names=order, points=[_Msg(positions=list(q[::-1]))]))
+    np.testing.assert_allclose(pairer.target, q)
+    with pytest.raises(MessageError, match=r"lacks joints \['r_elbow'\]") as e:
+        feeder.joint_state(_Msg(name=[n for n in order if n != 'r_elbow'], position=[0.0] * 6,
+                                header=_Msg(stamp=_stamp(1.0))))
+    assert e.value.key == 'names' and e.value.once
+    with pytest.raises(MessageError, match='non-finite') as e:
+        feeder.joint_state(_Msg(name=order, position=[np.nan] * 7, header=_Msg(stamp=_stamp(1.0))))
+    assert not e.value.once
+    with pytest.raises(ValueError, match="not '/markers'"):
+        feeder.feed('/markers', None)
+
+
+def test_feeder_constant_noise_replaces_the_message_covariance(setup):
+    from calibration_interfaces.messages import matrix_to_pose_msg
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+
+    model, est, pairer = setup
+    q = np.radians([-30, 30, 0, 45, 0, 0, 0])
+    seen = []
+    pairer.hand_pose = lambda t, pose, R: seen.append(R) or []     # observe what the feeder passes on
+    msg = PoseWithCovarianceStamped()
+    msg.pose.pose = matrix_to_pose_msg(model.forward_kinematics(q))
+    msg.pose.covariance = (np.eye(6) * 3.0).ravel().tolist()
+    MessageFeeder(pairer, model.joint_names).hand_pose(msg)
+    MessageFeeder(pairer, model.joint_names, ConstantNoise()).hand_pose(msg)
+    np.testing.assert_allclose(seen[0], np.eye(6) * 3.0)
+    np.testing.assert_allclose(seen[1], R)

@@ -18,10 +18,11 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from body_schema.markers import aruco_dictionary
 from body_schema.robot import ArmModel, CameraIntrinsics, load_robot
 from body_schema.sampling import uniform_configs
 
-from .world import SimWorld, aruco_dictionary
+from .world import SimWorld
 
 __all__ = ['VisibilityResult', 'measure_visibility', 'main']
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
+import time
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -25,12 +26,13 @@ import pybullet as p
 from numpy.typing import ArrayLike, NDArray
 from pybullet_utils import bullet_client
 
+from body_schema.markers import aruco_dictionary, marker_corners
 from body_schema.robot import ArmModel, CameraIntrinsics, MarkerPlacement
 from body_schema.urdf import FixedLink, Visual, dh_chain_urdf, xyz_rpy_to_transform
 
 from . import camera as cam
 
-__all__ = ['HAND_SIZE', 'MarkerSpec', 'SimWorld', 'marker_texture', 'aruco_dictionary']
+__all__ = ['HAND_SIZE', 'MarkerSpec', 'SimWorld', 'marker_texture']
 
 #: Palm box extents in the hand frame [m]: x toward the fingers, y across, z palm thickness.
 HAND_SIZE = (0.07, 0.055, 0.025)
@@ -72,16 +74,6 @@ def _grid_obj(n: int) -> str:
 
 #: Grid resolution of the marker quads (see :func:`_grid_obj`).
 MARKER_GRID = 1
-
-
-def aruco_dictionary(name: str):
-    """The cv2.aruco predefined dictionary called ``name`` (e.g. ``'DICT_4X4_50'``)."""
-    import cv2
-
-    code = getattr(cv2.aruco, name, None)
-    if not name.startswith('DICT_') or not isinstance(code, int):
-        raise ValueError(f'unknown ArUco dictionary {name!r}; expected a cv2.aruco DICT_* name')
-    return cv2.aruco.getPredefinedDictionary(code)
 
 
 def marker_texture(dictionary: str, marker_id: int, cell_px: int = 24,
@@ -132,8 +124,7 @@ class MarkerSpec:
 
     def corners_in_marker(self) -> NDArray[np.float64]:
         """The black square's corners in ArUco order (TL, TR, BR, BL), shape (4, 3)."""
-        s = self.side_length / 2
-        return np.array([[-s, s, 0], [s, s, 0], [s, -s, 0], [-s, -s, 0]])
+        return marker_corners(self.side_length)
 
 
 def _segment_visuals(a: float, d: float, radius: float, rgba: tuple, joint_ball: bool = True) -> list[Visual]:
@@ -183,6 +174,13 @@ class SimWorld:
         Head joints [rad] used to place the (static) head geometry.
     physics_step : float
         Fixed physics time step [s].
+
+    Attributes
+    ----------
+    renders : int
+        Images rendered so far (a supersampled one counts once).
+    render_seconds : float
+        Wall seconds spent rendering them: a timing hook for benchmarks and experiments.
     """
 
     def __init__(self, robot: ArmModel, dh: ArrayLike | None = None, *,
@@ -212,6 +210,8 @@ class SimWorld:
                 raise ValueError(f'marker {spec.placement.name!r}: printed side {spec.quad_side:.4f} m '
                                  f'(with quiet zone) does not fit on the {HAND_SIZE[:2]} m palm')
         self.physics_step = float(physics_step)
+        self.renders = 0
+        self.render_seconds = 0.0
         self._tmp = tempfile.mkdtemp(prefix='icub_sim_')
         self._client = bullet_client.BulletClient(connection_mode=p.DIRECT)
         try:
@@ -371,14 +371,23 @@ class SimWorld:
         -------
         ndarray, shape (H, W, 3), uint8, C-contiguous
         """
+        t0 = time.perf_counter()
+        try:
+            return self._render(root_T_cam, intrinsics, near, far, supersample)
+        finally:
+            self.renders += 1
+            self.render_seconds += time.perf_counter() - t0
+
+    def _render(self, root_T_cam: ArrayLike, intrinsics: CameraIntrinsics, near: float, far: float,
+                supersample: int) -> NDArray[np.uint8]:
         if supersample != 1:
             if int(supersample) != supersample or supersample < 1:
                 raise ValueError(f'supersample must be a positive integer, got {supersample}')
             import cv2
 
             s = int(supersample)
-            big = self.render(root_T_cam, intrinsics.scaled(intrinsics.width * s, intrinsics.height * s),
-                              near, far)
+            big = self._render(root_T_cam, intrinsics.scaled(intrinsics.width * s, intrinsics.height * s),
+                               near, far, 1)
             return cv2.resize(big, (intrinsics.width, intrinsics.height), interpolation=cv2.INTER_AREA)
         w, h = intrinsics.width, intrinsics.height
         view = cam.to_gl_list(cam.gl_view(root_T_cam))

@@ -189,8 +189,8 @@ def test_projected_corners_match_detected_ones_over_the_wire(ros) -> None:
     from scipy.spatial.transform import Rotation
 
     from body_schema.noise import view_geometry
-    from icub_sim_bridge.camera import project_points, refine_square_corners
-    from icub_sim_bridge.world import aruco_dictionary
+    from body_schema.markers import aruco_dictionary, marker_corners, refine_corners_edges
+    from icub_sim_bridge.camera import project_points
 
     make_sim(ros, supersample=2, cameras=['left'], max_joint_speed_deg=360.0)
     probe = Probe(ros)
@@ -229,13 +229,33 @@ def test_projected_corners_match_detected_ones_over_the_wire(ros) -> None:
             mk = hand @ m.hand_T_marker
             _r, phi = view_geometry(cam, mk)
             if phi < 45.0:
-                s = ROBOT.marker_side_length / 2
-                obj = np.array([[-s, s, 0], [s, s, 0], [s, -s, 0], [-s, -s, 0]])
+                obj = marker_corners(ROBOT.marker_side_length)
                 uv = project_points(obj @ mk[:3, :3].T + mk[:3, 3], cam, K)
-                errors.append(np.abs(refine_square_corners(gray, c.reshape(4, 2)) - uv).max())
+                refined = refine_corners_edges(gray, c.reshape(4, 2))
+                assert refined is not None, f'no edge fit for marker {int(i)}'
+                errors.append(np.abs(refined - uv).max())
     assert len(errors) >= 3, 'too few frontal detections'
     assert max(errors) < 0.5, errors
 
 
 def _t(stamp) -> float:
     return stamp.sec + stamp.nanosec * 1e-9
+
+
+def test_starts_from_the_estimators_exported_dh_file(ros, tmp_path) -> None:
+    from calibration_interfaces.dh_file import write_dh_file
+
+    rng = np.random.default_rng(11)
+    calibrated = ROBOT.dh + rng.uniform(-0.002, 0.002, ROBOT.dh.shape)
+    # What OnlineEstimator.export writes (a DH file with one-sigma and counters).
+    path = write_dh_file(tmp_path / 'calibrated_dh.yaml', calibrated, ROBOT.joint_names, ROBOT.name,
+                         np.full(ROBOT.dh.shape, 1e-3), extra={'updates': {'updates': 3}})
+    sim = make_sim(ros, true_dh_file=str(path), perturb_seed=-1, image_rate=0.0)
+    np.testing.assert_allclose(sim.true_dh, calibrated, atol=1e-12)
+
+
+def test_a_missing_dh_file_is_named(ros, tmp_path) -> None:
+    from calibration_interfaces.dh_file import DhFileError
+
+    with pytest.raises(DhFileError, match='nope.yaml'):
+        make_sim(ros, true_dh_file=str(tmp_path / 'nope.yaml'))

@@ -8,8 +8,9 @@ import pytest
 from body_schema.noise import view_geometry
 from body_schema.robot import load_robot
 from body_schema.sampling import perturb_dh, uniform_configs
-from icub_sim_bridge.camera import degrade, gl_projection, project_points, refine_square_corners
-from icub_sim_bridge.world import SimWorld, aruco_dictionary, marker_texture
+from body_schema.markers import aruco_dictionary, refine_corners_edges
+from icub_sim_bridge.camera import degrade, gl_projection, project_points
+from icub_sim_bridge.world import SimWorld, marker_texture
 
 ROBOT = load_robot()
 
@@ -58,7 +59,10 @@ def test_projection_matrix_maps_pixel_centres() -> None:
 
 
 def _detections(world, intr, supersample, n, seed):
-    """(phi [deg], corner errors (4, 2)) of every detection over n box configurations."""
+    """(phi [deg], corner errors (4, 2)) of every detection over n box configurations.
+
+    Corners are the detector's edge-line refinement of ArUco's (ArUco's own sit up to a pixel off,
+    so they would not resolve a half-pixel raster mistake)."""
     det = cv2.aruco.ArucoDetector(aruco_dictionary(ROBOT.marker_dictionary))
     cam = ROBOT.camera_pose('left')
     out = []
@@ -73,7 +77,9 @@ def _detections(world, intr, supersample, n, seed):
             spec = next(m for m in world.markers if m.placement.marker_id == int(i))
             _r, phi = view_geometry(cam, hand @ spec.placement.hand_T_marker)
             uv = project_points(truth[int(i)], cam, intr.K)
-            out.append((float(phi), refine_square_corners(gray, c.reshape(4, 2)) - uv))
+            refined = refine_corners_edges(gray, c.reshape(4, 2))
+            assert refined is not None, f'no edge fit for marker {int(i)} at q={q}'
+            out.append((float(phi), refined - uv))
     return out
 
 
@@ -100,8 +106,11 @@ def test_default_render_has_no_bias(world) -> None:
 def test_higher_resolution_keeps_field_of_view(world) -> None:
     world.set_joint_positions(ROBOT.calibration_box.mean(axis=1))
     cam = ROBOT.camera_pose('left')
+    renders, seconds = world.renders, world.render_seconds
     small = world.render(cam, ROBOT.camera)
     big = world.render(cam, ROBOT.camera.scaled(640, 480))
+    # The timing hook counts both renders and the time they took.
+    assert world.renders == renders + 2 and world.render_seconds > seconds
     assert small.shape == (240, 320, 3) and big.shape == (480, 640, 3)
     assert small.flags['C_CONTIGUOUS'] and small.dtype == np.uint8
     down = cv2.resize(big, (320, 240), interpolation=cv2.INTER_AREA)

@@ -30,13 +30,16 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
+from body_schema.kinematics import rotation_angle_deg
+from body_schema.markers import aruco_dictionary, marker_corners, refine_corners_edges
 from body_schema.noise import NoiseModel, PoseDependentNoise, view_geometry
 from body_schema.robot import ArmModel, MarkerPlacement
+from calibration_interfaces.parameters import setting
 
 __all__ = [
     'FUSION_MODES', 'DetectorConfig', 'DetectedMarker', 'MarkerPose', 'HandEstimate',
-    'FrameResult', 'MarkerDetector', 'refine_corners_edges', 'marker_object_points', 'solve_marker_pose', 'gate_marker',
-    'hand_from_marker', 'fuse_estimates', 'refine_joint', 'HandPoseEstimator', 'rotation_angle_deg',
+    'FrameResult', 'MarkerDetector', 'solve_marker_pose', 'gate_marker',
+    'hand_from_marker', 'fuse_estimates', 'refine_joint', 'HandPoseEstimator',
 ]
 
 #: How several accepted markers (or eyes) are combined into one hand pose:
@@ -68,18 +71,20 @@ class DetectorConfig:
     corner_refinement : bool
         Sub-pixel corner refinement (CORNER_REFINE_SUBPIX).
     edge_refinement : bool
-        Then re-locate corners from fitted edge lines (:func:`refine_corners_edges`).
+        Then re-locate corners from fitted edge lines (:func:`body_schema.markers.refine_corners_edges`).
     """
 
-    max_reprojection_error_px: float = 1.0
-    ambiguity_ratio: float = 2.0
-    ambiguity_margin_px: float = 0.1
-    ambiguity_min_angle_deg: float = 8.0
-    refine_lm: bool = True
-    fusion: str = 'best'
-    min_side_px: float = 8.0
-    corner_refinement: bool = True
-    edge_refinement: bool = True
+    max_reprojection_error_px: float = setting(1.0, 'Reject a marker whose RMS corner reprojection error is '
+                                               'larger [px]', (0.0, 100.0))
+    ambiguity_ratio: float = setting(2.0, 'IPPE flip is ambiguous when alt_err < ratio * best_err + margin',
+                                     (1.0, 100.0))
+    ambiguity_margin_px: float = setting(0.1, 'Additive margin of the ambiguity test [px]', (0.0, 100.0))
+    ambiguity_min_angle_deg: float = setting(8.0, 'Solutions closer than this are not ambiguous [deg]', (0.0, 180.0))
+    refine_lm: bool = setting(True, 'Levenberg-Marquardt polish of the IPPE pose')
+    fusion: str = setting('best', 'Combining several accepted markers', choices=FUSION_MODES)
+    min_side_px: float = setting(8.0, 'Ignore markers with a shorter side [px]', (0.0, 1000.0))
+    corner_refinement: bool = setting(True, "ArUco's sub-pixel corner refinement (CORNER_REFINE_SUBPIX)")
+    edge_refinement: bool = setting(True, 'Corners from fitted edge lines (removes ArUco corner bias)')
 
     def __post_init__(self) -> None:
         if self.fusion not in FUSION_MODES:
@@ -219,9 +224,7 @@ class MarkerDetector:
 
     def __init__(self, dictionary: str, known_ids: Sequence[int], corner_refinement: bool = True,
                  min_side_px: float = 8.0, edge_refinement: bool = True) -> None:
-        code = getattr(cv2.aruco, dictionary, None)
-        if not isinstance(code, int) or not dictionary.startswith('DICT_'):
-            raise ValueError(f'dictionary: unknown ArUco dictionary {dictionary!r}')
+        aruco_dict = aruco_dictionary(dictionary)
         self.dictionary_name = dictionary
         self.known_ids = frozenset(int(i) for i in known_ids)
         self.min_side_px = float(min_side_px)
@@ -232,7 +235,6 @@ class MarkerDetector:
             params.cornerRefinementWinSize = 3
             params.cornerRefinementMinAccuracy = 0.01
             params.cornerRefinementMaxIterations = 50
-        aruco_dict = cv2.aruco.getPredefinedDictionary(code)
         self.cells = int(aruco_dict.markerSize) + 2 * int(params.markerBorderBits)
         self.edge_refinement = bool(edge_refinement)
         self._detect = _aruco_backend(aruco_dict, params)
@@ -284,142 +286,8 @@ class MarkerDetector:
         return out
 
 
-def refine_corners_edges(gray: NDArray[np.uint8], corners: ArrayLike, cells: int = 6,
-                         max_shift_px: float = 3.0, iterations: int = 2) -> NDArray[np.float64] | None:
-    """Re-locate a marker's corners as intersections of its four fitted edge lines.
-
-    ArUco's corners come from the thresholded contour and sit up to ~0.6 px inside the black
-    square; sub-pixel refinement on a 25-pixel marker cannot fix it because its window must stay
-    inside one cell. Edges carry far more evidence than corners: along each side, the profile
-    across the edge is sampled (bilinear) at many points, the crossing of the mid level between
-    the dark border cell and the bright surround is found, a line is fitted by total least squares
-    (one round of outlier rejection), and adjacent lines are intersected. A second pass re-centres
-    the search on the fitted lines.
-
-    Parameters
-    ----------
-    gray : ndarray, uint8, shape (H, W)
-    corners : array_like, shape (4, 2)
-        Initial corners, OpenCV order.
-    cells : int
-        Cells across the marker including the black border (6 for 4x4 dictionaries).
-    max_shift_px : float
-        Refuse the result if a corner moved further (then keep the initial corners). ArUco's
-        corner at an acute, aliased tip can be 2 px short of the true one, so this is generous;
-        a wrong edge fit moves corners much further.
-    iterations : int
-        Passes; each re-centres the edge search on the previous pass's lines.
-
-    Returns
-    -------
-    ndarray, shape (4, 2), or None when an edge could not be measured.
-    """
-    c0 = np.asarray(corners, dtype=float).reshape(4, 2)
-    if not np.all(np.isfinite(c0)):
-        return None
-    img = gray if gray.dtype == np.float32 else np.asarray(gray, dtype=np.float32)
-    c = c0
-    for _ in range(max(1, int(iterations))):
-        # Later passes centre the search on the previous edges, which may have moved ~1 px.
-        refined = _edge_pass(img, c, cells)
-        if refined is None:
-            return None
-        c = refined
-    if np.max(np.linalg.norm(c - c0, axis=1)) > max_shift_px:
-        return None
-    return c
-
-
-_N_OFFSETS = 17          # samples across an edge (the profile is bilinear in between)
-_NEXT = {k: (np.arange(4) + k) % 4 for k in (1, 2, 3)}      # corner i -> corner i + k
-
-
-def _edge_pass(img: NDArray[np.float32], c: NDArray[np.float64], cells: int) -> NDArray[np.float64] | None:
-    """One pass of :func:`refine_corners_edges`, vectorised over the four edges."""
-    a = c
-    b = c[_NEXT[1]]
-    length = np.linalg.norm(b - a, axis=1)                      # (4,)
-    if np.any(length < 4):
-        return None
-    u = (b - a) / length[:, None]
-    n = np.stack([-u[:, 1], u[:, 0]], axis=1)
-    centre = c.mean(axis=0)
-    n *= np.where(np.sum(n * ((a + b) / 2 - centre), axis=1) < 0, -1.0, 1.0)[:, None]   # outward
-    # The border cell's depth across an edge is set by the marker's extent perpendicular to it
-    # (foreshortened on oblique views), not by the edge's own length.
-    opp = np.stack([c[_NEXT[2]], c[_NEXT[3]]], axis=1)                            # (4, 2, 2)
-    depth = np.abs(np.einsum('kij,kj->ki', opp - a[:, None], n).mean(axis=1))
-    w = np.clip(0.7 * depth / cells, 1.0, 4.0)                  # stay within the border cell
-    t0 = np.minimum(0.45, (w + 1.0) / length)                   # keep clear of the other edges
-    n_s = int(np.clip(0.8 * length.max(), 5, 400))
-    frac = np.linspace(0.0, 1.0, n_s)
-    ts = t0[:, None] + frac[None] * (1 - 2 * t0)[:, None]       # (4, S)
-    offs = np.linspace(-1.0, 1.0, _N_OFFSETS)[None] * w[:, None]                   # (4, O)
-    pts = a[:, None] + (ts * length[:, None])[..., None] * u[:, None]              # (4, S, 2)
-    grid = pts[:, :, None] + offs[:, None, :, None] * n[:, None, None]             # (4, S, O, 2)
-    g = grid.reshape(4 * n_s, _N_OFFSETS, 2).astype(np.float32)
-    prof = cv2.remap(img, g[..., 0], g[..., 1], cv2.INTER_LINEAR,
-                     borderMode=cv2.BORDER_REPLICATE).reshape(4, n_s, _N_OFFSETS)
-    k = _N_OFFSETS // 5
-    dark, bright = prof[..., :k].mean(-1), prof[..., -k:].mean(-1)
-    mid = (dark + bright) / 2
-    above = prof >= mid[..., None]
-    # Dark-to-bright crossing nearest the current edge estimate, per sample line.
-    cost = np.where(~above[..., :-1] & above[..., 1:], np.abs(offs[:, None, :-1]), np.inf)
-    j = np.argmin(cost, axis=-1)                                                    # (4, S)
-    valid = (bright - dark > 20.0) & np.isfinite(np.take_along_axis(cost, j[..., None], -1)[..., 0])
-    v0 = np.take_along_axis(prof, j[..., None], -1)[..., 0]
-    v1 = np.take_along_axis(prof, j[..., None] + 1, -1)[..., 0]
-    o0 = np.take_along_axis(np.broadcast_to(offs[:, None], prof.shape), j[..., None], -1)[..., 0]
-    step = offs[:, 1:2] - offs[:, 0:1]
-    with np.errstate(divide='ignore', invalid='ignore'):
-        o = o0 + (mid - v0) / (v1 - v0) * step
-    e = pts + o[..., None] * n[:, None]                                            # (4, S, 2)
-    valid &= np.isfinite(o)
-    if np.any(valid.sum(1) < 4):
-        return None
-    mask = valid.astype(float)
-    for _ in range(2):                                          # fit, drop outliers, refit
-        m, d = _fit_lines(e, mask)
-        res = np.abs(np.einsum('ksj,kj->ks', e - m[:, None], np.stack([-d[:, 1], d[:, 0]], 1)))
-        srt = np.sort(np.where(mask > 0, res, np.inf), axis=1)   # masked samples sort last
-        mad = srt[np.arange(4), (mask.sum(1).astype(int) - 1) // 2]   # (lower) median
-        keep = (mask > 0) & (res <= np.maximum(3.0 * 1.4826 * mad, 0.05)[:, None])
-        if np.any(keep.sum(1) < 4):
-            break
-        mask = keep.astype(float)
-    m, d = _fit_lines(e, mask)
-    # Corner i is where the line of edge i-1 meets the line of edge i (2x2 solve by Cramer).
-    p1, d1 = m[_NEXT[3]], d[_NEXT[3]]
-    diff = m - p1
-    det = d1[:, 1] * d[:, 0] - d1[:, 0] * d[:, 1]
-    if np.any(np.abs(det) < 1e-6):
-        return None
-    s1 = (diff[:, 1] * d[:, 0] - diff[:, 0] * d[:, 1]) / det
-    out = p1 + s1[:, None] * d1
-    return out if np.all(np.isfinite(out)) else None
-
-
-def _fit_lines(e: NDArray[np.float64], mask: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Total-least-squares lines through masked point sets: centroids (K, 2), directions (K, 2)."""
-    wsum = mask.sum(1)
-    m = (e * mask[..., None]).sum(1) / wsum[:, None]
-    dx, dy = (e - m[:, None]).transpose(2, 0, 1)
-    cxx = (mask * dx * dx).sum(1)
-    cyy = (mask * dy * dy).sum(1)
-    cxy = (mask * dx * dy).sum(1)
-    theta = 0.5 * np.arctan2(2 * cxy, cxx - cyy)               # principal axis of the scatter
-    return m, np.stack([np.cos(theta), np.sin(theta)], axis=1)
-
-
 # --------------------------------------------------------------------------------------------
 # Single-marker pose
-
-
-def marker_object_points(side: float) -> NDArray[np.float64]:
-    """Corners of a marker of side ``side`` in its own frame, shape (4, 3), OpenCV order."""
-    h = side / 2.0
-    return np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
 
 
 def _to_matrix(rvec: ArrayLike, tvec: ArrayLike) -> NDArray[np.float64]:
@@ -427,20 +295,6 @@ def _to_matrix(rvec: ArrayLike, tvec: ArrayLike) -> NDArray[np.float64]:
     t[:3, :3] = cv2.Rodrigues(np.asarray(rvec, dtype=float).reshape(3, 1))[0]
     t[:3, 3] = np.asarray(tvec, dtype=float).reshape(3)
     return t
-
-
-def rotation_angle_deg(r_a: ArrayLike, r_b: ArrayLike) -> NDArray[np.float64]:
-    """Geodesic angle between rotations, shape (...) [deg]; inputs (..., 3, 3).
-
-    ``atan2(|vee(R - R^T)| / 2, (tr R - 1) / 2)`` of ``R = R_a R_b^T``: accurate at every
-    angle (arccos of the trace alone loses precision near 0 and 180 deg) and far cheaper than a
-    Rotation round trip, which matters at three calls per marker per frame.
-    """
-    rel = np.asarray(r_a, dtype=float) @ np.swapaxes(np.asarray(r_b, dtype=float), -1, -2)
-    vee = np.stack([rel[..., 2, 1] - rel[..., 1, 2], rel[..., 0, 2] - rel[..., 2, 0],
-                    rel[..., 1, 0] - rel[..., 0, 1]], axis=-1)
-    cos = (np.trace(rel, axis1=-2, axis2=-1) - 1.0) / 2.0
-    return np.degrees(np.arctan2(np.linalg.norm(vee, axis=-1) / 2.0, cos))
 
 
 def _rms_error(obj: NDArray[np.float64], img: NDArray[np.float64], t: NDArray[np.float64],
@@ -478,7 +332,7 @@ def solve_marker_pose(marker: DetectedMarker, side: float, k: ArrayLike,
     """
     k = np.asarray(k, dtype=float).reshape(3, 3)
     dist = np.zeros(5) if dist is None else np.asarray(dist, dtype=float).reshape(-1)
-    obj = marker_object_points(side)
+    obj = marker_corners(side)
     img = np.asarray(marker.corners, dtype=float).reshape(4, 2)
     invalid = MarkerPose(marker.marker_id, img, np.full((4, 4), np.nan), None, np.inf, np.inf,
                          0.0, np.nan, np.nan, 'invalid')
@@ -600,7 +454,7 @@ def refine_joint(cam_T_hand0: ArrayLike, markers: Sequence[MarkerPose],
     """
     k = np.asarray(k, dtype=float).reshape(3, 3)
     dist = np.zeros(5) if dist is None else np.asarray(dist, dtype=float).reshape(-1)
-    obj_m = np.c_[marker_object_points(side), np.ones(4)]
+    obj_m = np.c_[marker_corners(side), np.ones(4)]
     obj = np.concatenate([(placements[m.marker_id].hand_T_marker @ obj_m.T).T[:, :3] for m in markers])
     img = np.concatenate([m.corners for m in markers])
     t0 = np.asarray(cam_T_hand0, dtype=float)

@@ -13,6 +13,8 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from body_schema.markers import aruco_dictionary
+
 __all__ = ['look_at_pose', 'render_markers']
 
 
@@ -89,7 +91,7 @@ def render_markers(k: ArrayLike, size: tuple[int, int], markers: Sequence[tuple[
     ks[0, 2] = (k[0, 2] + 0.5) * s - 0.5
     ks[1, 2] = (k[1, 2] + 0.5) * s - 0.5
     big = np.full((height * s, width * s), background, np.uint8)
-    aruco = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
+    aruco = aruco_dictionary(dictionary)
     n_px = 240                                   # canvas resolution of the black square
     margin = int(round(quiet_zone * n_px))
     for marker_id, pose in markers:

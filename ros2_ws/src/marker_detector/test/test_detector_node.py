@@ -10,10 +10,11 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import CameraInfo, Image
 
 from body_schema import load_robot
+from body_schema.kinematics import rotation_angle_deg
 from body_schema.noise import PoseDependentNoise, view_geometry
-from marker_detector.detection import rotation_angle_deg
-from marker_detector.detector_node import (LATCHED_QOS, DetectorNode, matrix_to_pose_msg,
-                                           pose_msg_to_matrix)
+from calibration_interfaces.messages import matrix_to_pose_msg, pose_msg_to_matrix
+from calibration_interfaces.node_util import qos_profile
+from marker_detector.detector_node import DetectorNode
 from marker_detector.image_conversion import array_to_image_fields
 from marker_detector.synthetic import look_at_pose, render_markers
 
@@ -50,7 +51,7 @@ class Camera:
         self.root_T_cam = _camera_poses(model)[eye]
         self.image = self.node.create_publisher(Image, f'/camera/{eye}/image_raw', SENSOR_QOS)
         self.info = self.node.create_publisher(CameraInfo, f'/camera/{eye}/camera_info', SENSOR_QOS)
-        self.pose = self.node.create_publisher(PoseStamped, f'/camera/{eye}/pose', LATCHED_QOS)
+        self.pose = self.node.create_publisher(PoseStamped, f'/camera/{eye}/pose', qos_profile(f'/camera/{eye}/pose'))
 
     def publish_pose(self) -> None:
         msg = PoseStamped()
@@ -155,7 +156,7 @@ def test_bad_and_empty_frames_are_failed_outcomes(ros: Any, model) -> None:
     _wait_connected(ros, cam, det, probe)
     # No camera_info or pose yet: frames are skipped (no outcome), with one warning.
     cam.publish_image(np.zeros((240, 320, 3), np.uint8), sec=1)
-    ros.spin_until(lambda: 'noinfo-left' in det._warned, 5.0, 'missing camera_info warning')
+    ros.spin_until(lambda: 'noinfo-left' in det._warn_once.keys, 5.0, 'missing camera_info warning')
     assert probe.markers == []
     cam.publish_pose()
     ros.spin_until(lambda: det.eyes['left'].root_T_cam is not None, 5.0, 'camera pose')

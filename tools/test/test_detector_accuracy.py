@@ -6,11 +6,11 @@ import pytest
 
 from body_schema import load_robot
 from body_schema.noise import PoseDependentNoise
-from marker_detector.accuracy import Frame, Outcome, _fit_law, evaluate, fit_noise, summarize
+from tools.detector_accuracy import Frame, FrameScores, _fit_law, evaluate, fit_noise, summarize
 from marker_detector.detection import DetectedMarker, HandPoseEstimator, solve_marker_pose
 
 
-def _draw(law: PoseDependentNoise, n: int, seed: int) -> Outcome:
+def _draw(law: PoseDependentNoise, n: int, seed: int) -> FrameScores:
     rng = np.random.default_rng(seed)
     r = rng.uniform(0.15, 0.5, n)
     phi = rng.uniform(0, 85, n)
@@ -18,7 +18,7 @@ def _draw(law: PoseDependentNoise, n: int, seed: int) -> Outcome:
     pv = rng.normal(size=(n, 3)) * np.sqrt(vp)[:, None]
     ov = rng.normal(size=(n, 3)) * np.sqrt(vo)[:, None]
     ones = np.ones(n, bool)
-    return Outcome(ones, ones, np.linalg.norm(pv, axis=1), np.linalg.norm(ov, axis=1), pv, ov, r, phi,
+    return FrameScores(ones, ones, np.linalg.norm(pv, axis=1), np.linalg.norm(ov, axis=1), pv, ov, r, phi,
                    np.ones(n, np.int64))
 
 
@@ -50,13 +50,13 @@ def test_fit_zero_coefficient_is_zero() -> None:
 def test_evaluate_measures_against_truth() -> None:
     """A frame whose marker pose is exact gives zero error; a shifted truth gives that shift."""
     import cv2
-    from marker_detector.detection import marker_object_points
+    from body_schema.markers import marker_corners
     from marker_detector.synthetic import look_at_pose
 
     model = load_robot('icub_right_arm')
     k = model.camera.K
     cam_T_m = look_at_pose(0.25, 40.0)
-    proj, _ = cv2.projectPoints(marker_object_points(model.marker_side_length),
+    proj, _ = cv2.projectPoints(marker_corners(model.marker_side_length),
                                 cv2.Rodrigues(cam_T_m[:3, :3])[0], cam_T_m[:3, 3], k, np.zeros(5))
     pose = solve_marker_pose(DetectedMarker(0, proj.reshape(4, 2)), model.marker_side_length, k)
     root_T_cam = model.camera_pose('left')

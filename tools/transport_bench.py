@@ -10,7 +10,7 @@ subscriber had mapped (its own, plus the publisher's when data came through shar
 the bytes that crossed the loopback interface per frame sent (all processes on the machine:
 about one frame's size when the frames travel over UDP, near zero over shared memory).
 
-Usage: ``python -m calibration_bringup.transport_bench [--duration S] [--rate HZ] ...``;
+Usage: ``python -m tools.transport_bench [--duration S] [--rate HZ] ...``;
 ``main(argv)`` returns the Markdown section for ``make bench``.
 """
 from __future__ import annotations
@@ -31,6 +31,8 @@ IMAGE_TOPIC = '/bench/image'
 READY_TOPIC = '/bench/ready'
 DONE_TOPIC = '/bench/done'
 PROFILE_NAME = 'fastdds_shm.xml'
+#: The repository root: the children run ``-m tools.transport_bench`` from it.
+REPO = Path(__file__).resolve().parents[1]
 PROFILE_ENV_VARS = ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE')
 QOS_CHOICES = ('sensor_data', 'reliable')
 
@@ -42,7 +44,7 @@ def profile_path() -> Path:
     -------
     Path
         ``share/calibration_bringup/config/fastdds_shm.xml`` when the package is installed
-        (colcon or ``make setup``), otherwise ``config/fastdds_shm.xml`` beside the sources.
+        (colcon or ``make setup``), otherwise the one in the package's sources.
     """
     try:
         from ament_index_python.packages import get_package_share_directory
@@ -51,7 +53,7 @@ def profile_path() -> Path:
             return installed
     except (ImportError, LookupError, ValueError, OSError):  # not installed, or no prefix path
         pass
-    return Path(__file__).resolve().parents[1] / 'config' / PROFILE_NAME
+    return REPO / 'ros2_ws' / 'src' / 'calibration_bringup' / 'config' / PROFILE_NAME
 
 
 # For comparison only: what the frames cost when shared memory is off and they go over UDP.
@@ -326,12 +328,12 @@ def run_pair(profile: Path | None, label: str, qos: str, *, domain_id: int,
     if discovery_range == 'SUBNET':
         env['ROS_STATIC_PEERS'] = '127.0.0.1'  # discovery without relying on multicast
     env['RMW_IMPLEMENTATION'] = 'rmw_fastrtps_cpp'
-    # The children import this module by name whether or not the package is installed.
-    pkg_parent = str(Path(__file__).resolve().parents[1])
+    # The children import this module by name from the repository root (tools/ is not installed).
+    pkg_parent = str(REPO)
     env['PYTHONPATH'] = os.pathsep.join(p for p in (pkg_parent, env.get('PYTHONPATH')) if p)
     common = ['--qos', qos, '--rate', str(rate), '--duration', str(duration), '--width',
               str(width), '--height', str(height), '--timeout', str(timeout)]
-    cmd = [sys.executable, '-m', 'calibration_bringup.transport_bench']
+    cmd = [sys.executable, '-m', 'tools.transport_bench']
     lo_before = loopback_bytes()
     procs = [subprocess.Popen(cmd + ['--role', role] + common, env=env, text=True,
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE)
@@ -411,7 +413,7 @@ def format_table(results: list[dict[str, Any]], *, rate: float, duration: float,
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog='python -m calibration_bringup.transport_bench',
+    p = argparse.ArgumentParser(prog='python -m tools.transport_bench',
                                 description=__doc__.split('\n\n')[0])
     p.add_argument('--role', choices=('sub', 'pub'), help=argparse.SUPPRESS)
     p.add_argument('--qos', choices=QOS_CHOICES, action='append',

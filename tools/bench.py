@@ -1,9 +1,9 @@
-"""``make bench``: run every package's benchmark and print their Markdown tables.
+"""``make bench``: run every benchmark and print their Markdown tables.
 
-Each benchmark is a module with ``main(argv) -> str`` returning a Markdown section
-(``<package>.bench`` for every package, plus the Fast DDS image transport benchmark); the tables
-are printed and written to ``results/bench/<name>.md``.
-Usage: ``python -m calibration_bringup.bench [name ...]`` with names from ``BENCHMARKS``.
+Each benchmark is a module of this ``tools`` tree (not installed with the nodes) with
+``main(argv) -> str`` returning a Markdown section; the tables are printed and written to
+``results/bench/<name>.md``. Usage, from the repository root: ``python -m tools.bench [name ...]``
+with names from ``BENCHMARKS``.
 """
 from __future__ import annotations
 
@@ -11,12 +11,14 @@ import importlib
 import sys
 from pathlib import Path
 
-#: name -> (module, argv of its main)
+#: name -> (module, argv of its main). Names are the packages (or transport) each one measures.
 BENCHMARKS: dict[str, tuple[str, list[str]]] = {
-    **{pkg: (f'{pkg}.bench', []) for pkg in
-       ('body_schema', 'icub_sim_bridge', 'marker_detector', 'dh_estimator', 'active_selector')},
+    'body_schema': ('tools.kinematics_bench', []),
+    'icub_sim_bridge': ('tools.sim_bench', []),
+    'marker_detector': ('tools.detector_bench', []),
+    'active_selector': ('tools.loop_bench', []),
     # 640x480 frames between processes, default Fast DDS vs the shipped shared-memory profile.
-    'transport': ('calibration_bringup.transport_bench', ['--profile', 'default', '--profile', 'shm']),
+    'transport': ('tools.transport_bench', ['--profile', 'default', '--profile', 'shm']),
 }
 
 

@@ -1,4 +1,4 @@
-"""The one encoding of the topic contract's arrays and poses (every node package uses this).
+"""The one encoding of the topic contract's arrays, poses and joints (every node package uses this).
 
 DH tables and covariances <-> std_msgs/Float64MultiArray (``/body_schema/estimate``,
 ``/body_schema/covariance``, ``/body_schema/true``); geometry_msgs/Pose <-> 4x4 transforms;

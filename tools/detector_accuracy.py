@@ -28,12 +28,13 @@ from numpy.typing import NDArray
 from scipy.optimize import minimize, nnls
 from scipy.spatial.transform import Rotation
 
+from body_schema.markers import marker_corners
 from body_schema.noise import ConstantNoise, NoiseModel, PoseDependentNoise, view_geometry
 from body_schema.robot import ArmModel
 
-from .detection import DetectorConfig, HandPoseEstimator, MarkerPose, gate_marker
+from marker_detector.detection import DetectorConfig, HandPoseEstimator, MarkerPose, gate_marker
 
-__all__ = ['FLIP_DEG', 'Frame', 'Outcome', 'NoiseFit', 'collect', 'evaluate', 'fit_noise', 'summarize',
+__all__ = ['FLIP_DEG', 'Frame', 'FrameScores', 'NoiseFit', 'collect', 'evaluate', 'fit_noise', 'summarize',
            'time_frames', 'binned']
 
 
@@ -57,7 +58,7 @@ class Frame:
 
 
 @dataclass
-class Outcome:
+class FrameScores:
     """Per-frame results of one evaluation (arrays of length N frames).
 
     ``r``/``phi`` are the true distance and viewing angle of the marker the estimate relies on
@@ -80,8 +81,7 @@ def _truth_view(frame_root_T_cam: NDArray[np.float64], truth: NDArray[np.float64
                 k: NDArray[np.float64], size: tuple[int, int]) -> dict[int, tuple[float, float, bool]]:
     out = {}
     cam_T_root = np.linalg.inv(frame_root_T_cam)
-    h = model.marker_side_length / 2
-    corners = np.array([[-h, h, 0, 1], [h, h, 0, 1], [h, -h, 0, 1], [-h, -h, 0, 1]], float).T
+    corners = np.c_[marker_corners(model.marker_side_length), np.ones(4)].T
     for m in model.markers:
         cam_T_m = cam_T_root @ truth @ m.hand_T_marker
         r, phi = view_geometry(np.eye(4), cam_T_m)
@@ -162,10 +162,10 @@ def time_frames(frames: Sequence[Frame], estimator: HandPoseEstimator, repeats: 
     return np.array(out)
 
 
-def evaluate(frames: Sequence[Frame], estimator: HandPoseEstimator, fusion: str | None = None) -> Outcome:
+def evaluate(frames: Sequence[Frame], estimator: HandPoseEstimator, fusion: str | None = None) -> FrameScores:
     """Gate and fuse stored frames with ``estimator``'s settings; compare with the truth."""
     n = len(frames)
-    out = Outcome(np.zeros(n, bool), np.zeros(n, bool), np.full(n, np.nan), np.full(n, np.nan),
+    out = FrameScores(np.zeros(n, bool), np.zeros(n, bool), np.full(n, np.nan), np.full(n, np.nan),
                   np.full((n, 3), np.nan), np.full((n, 3), np.nan), np.full(n, np.nan),
                   np.full(n, np.nan), np.zeros(n, np.int64))
     statuses: dict[str, int] = {}
@@ -261,7 +261,7 @@ def _gauss_nll(sq: NDArray[np.float64], v: NDArray[np.float64], dof: int = 3) ->
 FLIP_DEG = 30.0
 
 
-def fit_noise(outcome: Outcome, exclude_flips: bool = True) -> NoiseFit:
+def fit_noise(outcome: FrameScores, exclude_flips: bool = True) -> NoiseFit:
     """Fit the pose-dependent and constant models to the successful frames of ``outcome``.
 
     With ``exclude_flips`` the gross outliers (orientation error above :data:`FLIP_DEG`: the
@@ -295,7 +295,7 @@ def fit_noise(outcome: Outcome, exclude_flips: bool = True) -> NoiseFit:
 # Summaries
 
 
-def summarize(outcome: Outcome, frames: Sequence[Frame] | None = None) -> dict[str, float]:
+def summarize(outcome: FrameScores, frames: Sequence[Frame] | None = None) -> dict[str, float]:
     """Headline figures: rates, median/p95 errors [mm, deg], time per frame [ms]."""
     s = outcome.success
     pe, re = outcome.pos_err[s] * 1e3, np.degrees(outcome.rot_err[s])
@@ -315,7 +315,7 @@ def summarize(outcome: Outcome, frames: Sequence[Frame] | None = None) -> dict[s
     return out
 
 
-def binned(outcome: Outcome, key: str, edges: Sequence[float]) -> list[tuple[str, int, float, float]]:
+def binned(outcome: FrameScores, key: str, edges: Sequence[float]) -> list[tuple[str, int, float, float]]:
     """Median position [mm] and orientation [deg] errors per bin of ``r`` [m] or ``phi`` [deg]."""
     vals = getattr(outcome, key)
     s = outcome.success & np.isfinite(vals)

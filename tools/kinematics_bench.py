@@ -1,6 +1,6 @@
 """Benchmark of the body_schema core (``make bench``): median wall times on this machine.
 
-``python -m body_schema.bench`` prints a Markdown table of: batched FK of 1000 configurations,
+``python -m tools.kinematics_bench`` prints a Markdown table of: batched FK of 1000 configurations,
 one pose Jacobian w.r.t. the 28 parameters, one EKF update (plain and iterated), one AL
 selection with DIRECT-L at 2000 evaluations and the cost of one evaluation inside it.
 """
@@ -12,10 +12,10 @@ from typing import Callable
 
 import numpy as np
 
-from . import ekf, load_robot, sampling
-from .acquisition import AcquisitionCost, JointSelector, SelectorConfig
-from .noise import PoseDependentNoise
-from .occlusion import OcclusionModel
+from body_schema import ekf, load_robot, sampling
+from body_schema.acquisition import AcquisitionCost, JointSelector, SelectorConfig
+from body_schema.noise import PoseDependentNoise
+from body_schema.occlusion import OcclusionModel
 
 
 def _median_time(fn: Callable[[], object], repeat: int, warmup: int = 3) -> float:

@@ -5,7 +5,7 @@ the selected configuration, the detector's pure module estimates the hand pose, 
 pure module updates, the planner learns the outcome. No motion is simulated (the arm is placed),
 so one iteration costs a render, a detection, an update and a selection. Used to choose gamma,
 delta, the arctan penalty and the occlusion kernel by measurement (``python -m
-active_selector.study --help``); the reported results always come from the real node graph.
+tools.selector_study --help``); the reported results always come from the real node graph.
 """
 from __future__ import annotations
 
@@ -25,7 +25,8 @@ from body_schema.metrics import PoseErrorEvaluator
 from body_schema.noise import ConstantNoise, NoiseModel, PoseDependentNoise
 from dh_estimator.estimator import EstimatorSettings, OnlineEstimator
 
-from .planner import Planner, PlannerSettings
+from active_selector.loop import CalibrationLoop, LoopSettings
+from active_selector.planner import Planner, PlannerSettings
 
 __all__ = ['EpisodeResult', 'run_episode', 'run_seed', 'main']
 
@@ -39,6 +40,20 @@ class EpisodeResult:
     movement_deg: list[float]
     discarded: int
     seconds: float
+
+
+class _StepClock:
+    """Simulated seconds that pass only when the harness says so."""
+
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+    def advance(self, dt: float = 0.05) -> float:
+        self.t += dt
+        return self.t
 
 
 def run_episode(model: ArmModel, world: object, x0: np.ndarray,
@@ -59,24 +74,31 @@ def run_episode(model: ArmModel, world: object, x0: np.ndarray,
     est = OnlineEstimator(model, x0, sampling.initial_covariance(model.n_joints), estimator_settings)
     planner = Planner(model, noise, settings)
     planner.start = start
+    clock = _StepClock()
+    loop = CalibrationLoop(planner, LoopSettings(iterations=iterations), clock)
+    loop.joint_state(clock(), start)
     pos, rot, mov = [evaluator(x0).position_mm], [evaluator(x0).orientation_deg], [0.0]
     t0 = time.perf_counter()
-    for _ in range(iterations):
+    while not loop.done:
         if on_select is not None:
             on_select(planner, est.dh, est.P)
-        sel = planner.select(est.dh, est.P, cam)
-        theta = np.clip(sel.theta, model.limits[:, 0], model.limits[:, 1])
-        world.set_joint_positions(theta)
+        theta = loop.select(est.dh, est.P, cam)
+        world.set_joint_positions(theta)            # placed, not moved: it settles at once
+        for _ in range(2):
+            loop.joint_state(clock.advance(), theta)
         gray = cv2.cvtColor(world.render(cam, model.camera), cv2.COLOR_RGB2GRAY)
         res = detector.process(gray, k, None, cam)
-        outcome = 'failed'
-        if res.success:
-            outcome = est.offer(theta, res.hand.pose, res.hand.covariance).value
-        a = planner.record(theta, theta, outcome, res.success, sel.seconds)
+        it = loop.markers(clock.advance(loop.settings.settle_time), res.success)
+        if it is None:
+            outcome = est.offer(theta, res.hand.pose, res.hand.covariance)
+            it = loop.estimator_outcome(outcome.value, theta)
+        if it is None:                              # not a final verdict (duplicate): the node times out
+            clock.advance(2 * loop.settings.outcome_timeout)
+            it = loop.tick()
         e = evaluator(est.dh)
         pos.append(e.position_mm)
         rot.append(e.orientation_deg)
-        mov.append(a.movement_deg)
+        mov.append(it.attempt.movement_deg)
     return EpisodeResult(pos, rot, mov, planner.discarded, time.perf_counter() - t0)
 
 

@@ -1,4 +1,4 @@
-"""Read the recorder's MCAP bags: topics, counts and messages (pure module, no rclpy).
+"""Read the recorder's MCAP bags: topics, counts, QoS and messages (pure module, no rclpy).
 
 ``read_messages`` decodes with ``mcap_ros2`` (dynamic classes built from the schemas stored in
 the file, so no ROS install is needed); ``read_raw`` gives the CDR bytes (what the player
@@ -10,9 +10,12 @@ file order (complete files are read in log-time order). ``summary(path).complete
 
 Example
 -------
->>> from calibration_bringup import bag
+>>> from calibration_interfaces import mcap_reader as bag
 >>> s = bag.summary('run.mcap'); s.topics['/joint_states'].count
 >>> for topic, t_ns, msg in bag.read_messages('run.mcap', ['/hand_pose']): ...
+
+The bag player, the report and the offline evaluation all read bags through this module;
+``calibration_bringup.mcap_writer`` writes them (the publishers' QoS as :class:`QosOffer`).
 """
 from __future__ import annotations
 
@@ -26,9 +29,87 @@ from mcap.exceptions import McapError
 from mcap.reader import SeekingReader
 from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
+import yaml
 from mcap_ros2.decoder import DecoderFactory
 
-from .mcap_writer import QosOffer, parse_offered_qos
+#: rmw's RMW_DURATION_INFINITE (2^63 - 1 ns), written as {sec: 9223372036, nsec: 854775807}.
+INFINITE_NS = 2**63 - 1
+
+
+@dataclass(frozen=True)
+class QosOffer:
+    """One publisher's QoS as rosbag2 stores it (policy names as in rmw's ``*_to_str``).
+
+    Durations are in nanoseconds; :data:`INFINITE_NS` means infinite. ``history`` is usually
+    ``'unknown'`` and ``depth`` 0: DDS discovery does not carry them.
+    """
+
+    history: str = 'unknown'
+    depth: int = 0
+    reliability: str = 'reliable'
+    durability: str = 'volatile'
+    deadline_ns: int = INFINITE_NS
+    lifespan_ns: int = INFINITE_NS
+    liveliness: str = 'automatic'
+    liveliness_lease_duration_ns: int = INFINITE_NS
+    avoid_ros_namespace_conventions: bool = False
+
+
+_POLICY_NAMES = {  # rmw enum values -> names (rosbag2 metadata <= 8 wrote the numbers)
+    'history': ('system_default', 'keep_last', 'keep_all', 'unknown'),
+    'reliability': ('system_default', 'reliable', 'best_effort', 'unknown', 'best_available'),
+    'durability': ('system_default', 'transient_local', 'volatile', 'unknown', 'best_available'),
+    'liveliness': ('system_default', 'automatic', 'manual_by_node', 'manual_by_topic', 'unknown',
+                   'best_available'),
+}
+# Infinity as Foxy-era rmw implementations reported it (rosbag2 maps these to infinite too).
+_FOXY_INFINITE = {(0x7FFFFFFF, 0xFFFFFFFF), (0x7FFFFFFF, 0x7FFFFFFF), divmod(INFINITE_NS, 10**9)}
+
+
+def _policy(kind: str, value: Any) -> str:
+    names = _POLICY_NAMES[kind]
+    if isinstance(value, int) and not isinstance(value, bool):
+        return names[value] if 0 <= value < len(names) else 'unknown'
+    value = str(value).lower()
+    return value if value in names else 'unknown'
+
+
+def _duration_ns(d: Any) -> int:
+    if not isinstance(d, dict):
+        return INFINITE_NS
+    sec, nsec = int(d.get('sec', 0)), int(d.get('nsec', 0))
+    if (sec, nsec) in _FOXY_INFINITE:
+        return INFINITE_NS
+    return sec * 10**9 + nsec
+
+
+def parse_offered_qos(text: str) -> list[QosOffer]:
+    """Parse ``offered_qos_profiles`` (names as metadata version 9, or numbers as before).
+
+    Raises
+    ------
+    ValueError
+        If ``text`` is not a YAML list of QoS mappings.
+    """
+    if not text.strip():
+        return []
+    try:
+        items = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise ValueError(f'offered_qos_profiles is not YAML: {exc}') from exc
+    if not isinstance(items, list) or not all(isinstance(i, dict) for i in items):
+        raise ValueError(f'offered_qos_profiles is not a list of mappings: {text[:200]!r}')
+    return [QosOffer(
+        history=_policy('history', i.get('history', 'unknown')),
+        depth=int(i.get('depth', 0)),
+        reliability=_policy('reliability', i.get('reliability', 'unknown')),
+        durability=_policy('durability', i.get('durability', 'unknown')),
+        deadline_ns=_duration_ns(i.get('deadline')),
+        lifespan_ns=_duration_ns(i.get('lifespan')),
+        liveliness=_policy('liveliness', i.get('liveliness', 'unknown')),
+        liveliness_lease_duration_ns=_duration_ns(i.get('liveliness_lease_duration')),
+        avoid_ros_namespace_conventions=bool(i.get('avoid_ros_namespace_conventions', False)),
+    ) for i in items]
 
 
 class RawMessage(NamedTuple):

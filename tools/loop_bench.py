@@ -1,8 +1,8 @@
 """Per-iteration time budget of the closed loop (``make bench``).
 
-Runs sim, detector, estimator and selector in one process (SingleThreadedExecutor, sim as fast
-as it can) for a few AL iterations at the default joint speed and DIRECT budget, then reports
-medians per iteration: the simulated move and the wait for the outcome (sim seconds), and the
+Runs the in-process graph (:mod:`calibration_bringup.graph`: sim, detector, estimator and
+selector on one SingleThreadedExecutor, sim as fast as it can) for a few AL iterations at the
+default joint speed and DIRECT budget, then reports medians per iteration: the simulated move and the wait for the outcome (sim seconds), and the
 compute (wall): capture (render), detect, update, select. Target: compute <= 10% of the move.
 """
 from __future__ import annotations
@@ -14,64 +14,40 @@ import time
 
 import cv2
 import numpy as np
+import rclpy
 
 
 def run(iterations: int = 8) -> dict[str, float]:
-    import rclpy
     from diagnostic_msgs.msg import DiagnosticStatus
-    from rclpy.context import Context
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.parameter import Parameter
     from std_msgs.msg import String
 
     from body_schema.noise import PoseDependentNoise
-    from dh_estimator.estimator_node import EstimatorNode
-    from icub_sim_bridge.sim_node import SimNode
+    from calibration_bringup.graph import InProcessGraph, ros_session
     from icub_sim_bridge.world import SimWorld
     from marker_detector.detection import HandPoseEstimator
-    from marker_detector.detector_node import DetectorNode
 
-    from .selector_node import SelectorNode
-
-    os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=90 + os.getpid() % 10)
-    sim_t = [Parameter('use_sim_time', value=True)]
-    nodes = [
-        SimNode(context=ctx, parameter_overrides=[Parameter('real_time_factor', value=0.0),
-                                                  Parameter('cameras', value=['left']),
-                                                  Parameter('perturb_seed', value=7)]),
-        DetectorNode(context=ctx, parameter_overrides=sim_t),
-        EstimatorNode(context=ctx, parameter_overrides=sim_t + [Parameter('export_on_shutdown', value=False)]),
-        SelectorNode(context=ctx, parameter_overrides=sim_t + [Parameter('iterations', value=iterations)]),
-    ]
     progress, updates = [], []
-    probe = rclpy.create_node('bench_probe', context=ctx)
-    probe.create_subscription(String, '/calibration/progress', lambda m: progress.append(json.loads(m.data)), 100)
-    probe.create_subscription(DiagnosticStatus, '/body_schema/update_status',
-                              lambda m: updates.append({v.key: v.value for v in m.values}), 100)
-    ex = SingleThreadedExecutor(context=ctx)
-    for n in nodes + [probe]:
-        ex.add_node(n)
-    wall0 = time.perf_counter()
-    deadline = time.monotonic() + 600
-    while len(progress) < iterations and time.monotonic() < deadline:
-        ex.spin_once(timeout_sec=0.01)
-    wall = time.perf_counter() - wall0
-    evals = nodes[3].planner.settings.selector.max_evals
-    sim = nodes[0]
-    model = sim.robot
+    with ros_session(domain_id=90 + os.getpid() % 10) as (ctx, executor):
+        with InProcessGraph(ctx, executor, {'sim': {'perturb_seed': 7},
+                                            'selector': {'iterations': iterations}}) as graph:
+            probe = graph.add('probe', rclpy.create_node('bench_probe', context=ctx))
+            probe.create_subscription(String, '/calibration/progress',
+                                      lambda m: progress.append(json.loads(m.data)), 100)
+            probe.create_subscription(DiagnosticStatus, '/body_schema/update_status',
+                                      lambda m: updates.append({v.key: v.value for v in m.values}), 100)
+            wall0 = time.perf_counter()
+            graph.spin_until(lambda: len(progress) >= iterations, 600.0, f'{iterations} AL iterations')
+            wall = time.perf_counter() - wall0
+            evals = graph.selector.planner.settings.selector.max_evals
+            ekf_iterations = graph.estimator.estimator.settings.iterations
+            model, true_dh = graph.sim.robot, graph.sim.true_dh
     reached = [np.radians(p['reached_deg']) for p in progress]
-    for n in nodes + [probe]:
-        ex.remove_node(n)
-        n.destroy_node()
-    rclpy.try_shutdown(context=ctx)
 
     # Capture and detection, timed on the same configurations outside the executor.
     cam = model.camera_pose('left')
     det = HandPoseEstimator(model, PoseDependentNoise())
     cap, dt = [], []
-    with SimWorld(model, sim.true_dh, head_pose=model.eyes.head_pose) as world:
+    with SimWorld(model, true_dh, head_pose=model.eyes.head_pose) as world:
         for q in reached:
             world.set_joint_positions(q)
             t0 = time.perf_counter()
@@ -91,7 +67,8 @@ def run(iterations: int = 8) -> dict[str, float]:
             'update_ms': 1e3 * float(np.median(upd)) if upd else float('nan'),
             'select_s': select, 'compute_s': compute, 'compute_over_move': compute / move,
             'wall_s_per_iteration': wall / max(len(progress), 1),
-            'accepted': sum(p['outcome'] == 'accepted' for p in progress), 'max_evals': evals}
+            'accepted': sum(p['outcome'] == 'accepted' for p in progress), 'max_evals': evals,
+            'ekf_iterations': ekf_iterations}
 
 
 def main(argv: list[str] | None = None) -> str:
@@ -101,7 +78,7 @@ def main(argv: list[str] | None = None) -> str:
         ('wait for the outcome after settling (sim)', f"{r['outcome_sim_s']:.2f} s", ''),
         ('capture: one 320x240 render', f"{r['capture_ms']:.1f} ms", ''),
         ('detect + pose, one frame', f"{r['detect_ms']:.1f} ms", ''),
-        ('EKF update', f"{r['update_ms']:.2f} ms", ''),
+        (f"EKF update ({r['ekf_iterations']} linearisations)", f"{r['update_ms']:.2f} ms", ''),
         (f"select (AL, DIRECT-L, {r['max_evals']} evaluations)", f"{r['select_s']:.3f} s", ''),
         ('compute = detect + update + select', f"{r['compute_s']:.3f} s", ''),
         ('compute / move', f"{100 * r['compute_over_move']:.1f} %", '<= 10 %'),

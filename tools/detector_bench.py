@@ -1,7 +1,7 @@
 """``make bench`` section for marker_detector: the accuracy study against simulator ground truth.
 
-``main(argv) -> str`` returns a Markdown section (see :mod:`calibration_bringup.bench`).
-Usage: ``python -m marker_detector.bench [--n 500] [--seed 0] [--noise 2.0] [--quick]``.
+``main(argv) -> str`` returns a Markdown section (see :mod:`tools.bench`).
+Usage: ``python -m tools.detector_bench [--n 500] [--seed 0] [--noise 2.0] [--quick]``.
 """
 from __future__ import annotations
 
@@ -18,8 +18,9 @@ from body_schema import load_robot
 from body_schema.noise import PoseDependentNoise
 from body_schema.sampling import uniform_configs
 
-from .accuracy import FLIP_DEG, Frame, Outcome, binned, collect, evaluate, fit_noise, summarize, time_frames
-from .detection import DetectorConfig, HandPoseEstimator, fuse_estimates, gate_marker
+from marker_detector.detection import DetectorConfig, HandPoseEstimator, fuse_estimates, gate_marker
+from tools.detector_accuracy import (FLIP_DEG, Frame, FrameScores, binned, collect, evaluate, fit_noise, summarize,
+                                     time_frames)
 
 RES_LOW, RES_HIGH = (320, 240), (640, 480)
 TARGETS = {RES_LOW: (10.0, 3.0), RES_HIGH: (5.0, 1.5)}     # median pos [mm], rot [deg]
@@ -59,10 +60,10 @@ def _stereo_rows(left: list[Frame], right: list[Frame], est: HandPoseEstimator) 
     return rows
 
 
-def _concat(a: Outcome, b: Outcome) -> Outcome:
+def _concat(a: FrameScores, b: FrameScores) -> FrameScores:
     """Two evaluations as one (for fitting on both eyes)."""
-    return Outcome(*[np.concatenate([getattr(a, f.name), getattr(b, f.name)])
-                     for f in fields(Outcome) if f.name != 'statuses'])
+    return FrameScores(*[np.concatenate([getattr(a, f.name), getattr(b, f.name)])
+                     for f in fields(FrameScores) if f.name != 'statuses'])
 
 
 def run(n: int = 500, seed: int = 0, noise_std: float = 2.0, robot_name: str = 'icub_right_arm',

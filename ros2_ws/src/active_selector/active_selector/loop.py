@@ -1,0 +1,266 @@
+"""The calibration loop as a pure state machine: select, command, settle, outcome, record (no rclpy).
+
+One iteration (docs/architecture.md, "The loop"): in :attr:`Phase.WAITING` the caller asks
+:meth:`CalibrationLoop.select` for the next target and commands it (:attr:`Phase.MOVING`); joint
+states (:meth:`~CalibrationLoop.joint_state`) show when the arm has settled at the target
+(:attr:`Phase.AWAITING_OUTCOME`); the first marker frame stamped ``settle_time`` after settling
+(:meth:`~CalibrationLoop.markers`) decides whether the hand was seen (not seen: outcome
+``failed``); if it was, the estimator's verdict for this configuration
+(:meth:`~CalibrationLoop.estimator_outcome`: ``accepted`` or ``rejected``) ends the iteration.
+:meth:`~CalibrationLoop.tick` ends a stuck one: ``unreachable`` when the target is not reached
+within ``settle_timeout``, ``timeout`` when no outcome follows within ``outcome_timeout``. Every
+ended iteration goes to the :class:`~active_selector.planner.Planner` (occlusion model, movement)
+and comes back as an :class:`Iteration`; after ``iterations`` of them the loop is
+:attr:`Phase.DONE`.
+
+Time comes from an injected clock (sim seconds in the node; a counter in the study harness and
+the tests); joint-state and marker times are the messages' stamps on the same clock.
+"""
+from __future__ import annotations
+
+import enum
+from collections import deque
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from calibration_interfaces.outcome import Outcome
+from calibration_interfaces.parameters import setting
+
+from .planner import Attempt, Planner
+
+__all__ = ['Phase', 'LoopSettings', 'Iteration', 'LoopStateError', 'CalibrationLoop']
+
+class Phase(enum.Enum):
+    WAITING = 'waiting for inputs'
+    MOVING = 'moving'
+    AWAITING_OUTCOME = 'awaiting outcome'
+    DONE = 'done'
+
+
+class LoopStateError(RuntimeError):
+    """A loop method called in a phase where it makes no sense (names the phase)."""
+
+
+@dataclass(frozen=True)
+class LoopSettings:
+    """When the arm counts as arrived and how long each phase may take.
+
+    Attributes
+    ----------
+    iterations : int
+        Iterations (measurement attempts) of the run.
+    settle_tolerance : float
+        Max joint error counted as arrived [rad]; the arm also must have moved less than a tenth
+        of it since the previous joint state. An estimator outcome matches the reached
+        configuration within twice this.
+    settle_timeout : float
+        Seconds (loop clock) to reach a target before the iteration is ``unreachable``.
+    settle_time : float
+        Seconds the arm rests before the attempt's marker frame (match the estimator's
+        ``static_window``).
+    outcome_timeout : float
+        Seconds after settling to get an outcome before the iteration is ``timeout``.
+    """
+
+    iterations: int = setting(50, 'Iterations (measurement attempts) of the run', (1, 100000))
+    settle_tolerance: float = setting(0.002, 'Max joint error counted as arrived [rad]', (1e-6, 0.5))
+    settle_timeout: float = setting(30.0, 'Seconds (sim) to reach a target before giving up', (0.1, 1e4))
+    settle_time: float = setting(0.1, "Seconds (sim) the arm rests before the attempt image (match the "
+                                 "estimator's static_window)", (0.0, 10.0))
+    outcome_timeout: float = setting(5.0, 'Seconds (sim) after settling to get an outcome', (0.1, 1e4))
+
+    def __post_init__(self) -> None:
+        if self.iterations < 1:
+            raise ValueError(f'iterations must be >= 1, got {self.iterations}')
+        for name in ('settle_tolerance', 'settle_timeout', 'outcome_timeout'):
+            if not getattr(self, name) > 0:
+                raise ValueError(f'{name} must be > 0, got {getattr(self, name)}')
+        if self.settle_time < 0:
+            raise ValueError(f'settle_time must be >= 0, got {self.settle_time}')
+
+
+@dataclass(frozen=True)
+class Iteration:
+    """One ended iteration.
+
+    Attributes
+    ----------
+    attempt : Attempt
+        What the planner recorded (target, reached configuration, outcome, movement).
+    reason : str
+        Why it ended this way, for the log.
+    move_s : float
+        Loop-clock seconds from the command to settling (to the end if it never settled).
+    outcome_s : float
+        Seconds from settling to the outcome (0 if it never settled).
+    time : float
+        Loop-clock time at the end.
+    record : dict
+        The progress record (JSON-ready) the node publishes on ``/calibration/progress``.
+    """
+
+    attempt: Attempt
+    reason: str
+    move_s: float
+    outcome_s: float
+    time: float
+    record: dict[str, Any]
+
+
+class CalibrationLoop:
+    """Phase, target and timing of the calibration loop around a :class:`Planner`.
+
+    Parameters
+    ----------
+    planner : Planner
+        Selects targets and records attempts; ``planner.start`` is set from the first joint
+        state if unset.
+    settings : LoopSettings
+    clock : callable
+        Current time [s] on the clock of the joint-state and marker stamps.
+    """
+
+    def __init__(self, planner: Planner, settings: LoopSettings, clock: Callable[[], float]) -> None:
+        self.planner = planner
+        self.settings = settings
+        self.clock = clock
+        self.phase = Phase.WAITING
+        self.q: NDArray[np.float64] | None = None
+        self.q_prev: NDArray[np.float64] | None = None
+        self.q_time = 0.0
+        self.target: NDArray[np.float64] | None = None
+        self.reached: NDArray[np.float64] | None = None
+        self.selection_seconds = 0.0
+        self.t_command = 0.0
+        self.t_settled = 0.0
+        self.detected: bool | None = None
+        # Recent estimator verdicts (outcome, joints, message): a verdict may come before the frame.
+        self._outcomes: deque[tuple[Outcome, NDArray[np.float64], str]] = deque(maxlen=50)
+
+    @property
+    def done(self) -> bool:
+        return self.phase is Phase.DONE
+
+    @property
+    def iteration(self) -> int:
+        """Iterations ended so far."""
+        return len(self.planner.history)
+
+    # ------------------------------------------------------------------------------ inputs
+
+    def joint_state(self, t: float, q: ArrayLike) -> None:
+        """Joint positions ``q`` (L,) [rad] stamped ``t``; may settle a move."""
+        self.q_prev, self.q, self.q_time = self.q, np.asarray(q, dtype=float), float(t)
+        if self.phase is Phase.MOVING:
+            self._check_settled()
+
+    def select(self, dh: ArrayLike | None, P: ArrayLike | None,  # noqa: N803
+               camera_pose: ArrayLike | None) -> NDArray[np.float64]:
+        """Select the next target (L,) [rad, within the limits] and enter :attr:`Phase.MOVING`.
+
+        The caller commands the returned target. ``dh`` (L, 4), ``P`` (4L, 4L) and
+        ``camera_pose`` (4, 4) may be None for the random strategy.
+
+        Raises
+        ------
+        LoopStateError
+            If the loop is not :attr:`Phase.WAITING` or no joint state has arrived yet.
+        """
+        if self.phase is not Phase.WAITING:
+            raise LoopStateError(f'select() needs phase {Phase.WAITING.value!r}, the loop is {self.phase.value!r}')
+        if self.q is None:
+            raise LoopStateError('select() needs a joint state first (the start of the movement)')
+        if self.planner.start is None:
+            self.planner.start = self.q.copy()
+        model = self.planner.model
+        sel = self.planner.select(dh, P, camera_pose)
+        self.target = np.clip(sel.theta, model.limits[:, 0], model.limits[:, 1])
+        self.selection_seconds = sel.seconds
+        self.phase = Phase.MOVING
+        self.t_command = self.clock()
+        self.detected = None
+        self._check_settled()
+        return self.target
+
+    def markers(self, t: float, detected: bool) -> Iteration | None:
+        """A marker frame stamped ``t``: ``detected`` if it holds the hand.
+
+        Only the first frame at least ``settle_time`` after settling counts; an empty one ends
+        the iteration as ``failed``.
+        """
+        if self.phase is Phase.AWAITING_OUTCOME and self.detected is None \
+                and t >= self.t_settled + self.settings.settle_time:
+            self.detected = bool(detected)
+            if not self.detected:
+                return self._finish(Outcome.FAILED, 'no marker detected after settling')
+            return self._match_outcome()
+        return None
+
+    def estimator_outcome(self, outcome: Outcome | str, joints: ArrayLike, message: str = '') -> Iteration | None:
+        """The estimator's verdict on an observation at configuration ``joints`` (L,) [rad].
+
+        It ends the iteration when the filter evaluated the observation (accepted, rejected;
+        others, e.g. duplicate, leave the iteration to its timeout), the hand was seen and
+        ``joints`` is the reached configuration (within twice the settle tolerance).
+
+        Raises
+        ------
+        ValueError
+            If ``outcome`` is not an :class:`~calibration_interfaces.outcome.Outcome` value.
+        """
+        self._outcomes.append((Outcome(outcome), np.asarray(joints, dtype=float).ravel(), message))
+        if self.phase is Phase.AWAITING_OUTCOME and self.detected:
+            return self._match_outcome()
+        return None
+
+    def tick(self) -> Iteration | None:
+        """Enforce the timeouts (call periodically)."""
+        s = self.settings
+        if self.phase is Phase.MOVING and self.clock() - self.t_command > s.settle_timeout:
+            err = np.abs(self.q - self.target)
+            j = int(np.argmax(err))
+            return self._finish(Outcome.UNREACHABLE, f'target not reached within {s.settle_timeout:.1f} s: '
+                                f'{self.planner.model.joint_names[j]} is {np.degrees(err[j]):.2f} deg away')
+        if self.phase is Phase.AWAITING_OUTCOME and self.clock() - self.t_settled > s.outcome_timeout:
+            why = ('no /markers frame after settling' if self.detected is None
+                   else 'markers seen but no estimator update for this configuration')
+            return self._finish(Outcome.TIMEOUT, why)
+        return None
+
+    # ------------------------------------------------------------------------------ transitions
+
+    def _check_settled(self) -> None:
+        if self.q is None or self.q_prev is None or self.q_time < self.t_command:
+            return
+        tol = self.settings.settle_tolerance
+        if np.max(np.abs(self.q - self.target)) <= tol and np.max(np.abs(self.q - self.q_prev)) <= tol * 0.1:
+            self.phase = Phase.AWAITING_OUTCOME
+            self.t_settled = self.q_time
+            self.reached = self.q.copy()
+
+    def _match_outcome(self) -> Iteration | None:
+        for outcome, q, message in reversed(self._outcomes):
+            if not outcome.updated:
+                continue
+            if q.shape == self.reached.shape and \
+                    np.max(np.abs(q - self.reached)) <= 2 * self.settings.settle_tolerance:
+                return self._finish(outcome, message)
+        return None
+
+    def _finish(self, outcome: Outcome, why: str) -> Iteration:
+        now = self.clock()
+        settled = self.phase is Phase.AWAITING_OUTCOME
+        reached = self.reached if settled else self.q.copy()
+        a = self.planner.record(self.target, reached, outcome, bool(self.detected), self.selection_seconds)
+        move_s = (self.t_settled if settled else now) - self.t_command
+        outcome_s = now - self.t_settled if settled else 0.0
+        record = {'iteration': a.iteration, 'strategy': self.planner.strategy.value, 'outcome': outcome.value,
+                  'detected': a.detected, 'reason': why, 'target_deg': np.degrees(a.target).tolist(),
+                  'reached_deg': np.degrees(a.reached).tolist(), 'movement_deg': a.movement_deg,
+                  'selection_s': a.selection_seconds, 'discarded': self.planner.discarded,
+                  'move_sim_s': move_s, 'outcome_sim_s': outcome_s, 'sim_time': now}
+        self.phase = Phase.DONE if a.iteration >= self.settings.iterations else Phase.WAITING
+        return Iteration(a, why, move_s, outcome_s, now, record)

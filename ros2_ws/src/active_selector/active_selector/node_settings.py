@@ -1,0 +1,56 @@
+"""Parameters of the selector node, described once on settings dataclasses (pure; no rclpy).
+
+The node declares, in order, :class:`SelectorNodeSettings` (robot, eye, files, reports),
+:class:`StrategySettings` (the strategy and its DIRECT search: :class:`body_schema.acquisition.SelectorConfig`,
+whose defaults it reuses), :class:`~active_selector.planner.PlannerSettings` (penalty, occlusion
+model), :class:`~active_selector.loop.LoopSettings` (iterations, settling, timeouts) and the
+noise model it predicts ``R(theta)`` with (:mod:`calibration_interfaces.noise`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from body_schema.acquisition import DIRECT_ALGORITHMS, SelectorConfig, Strategy
+from calibration_interfaces.noise import NoiseSettings, PoseDependentSettings
+from calibration_interfaces.parameters import setting
+
+from .loop import LoopSettings
+from .planner import PlannerSettings
+
+__all__ = ['SelectorNodeSettings', 'StrategySettings', 'SETTINGS']
+
+_SC = SelectorConfig()      # the strategy's defaults live in body_schema.acquisition
+
+
+@dataclass(frozen=True)
+class SelectorNodeSettings:
+    """What the selector node reads besides the planner's and the loop's settings."""
+
+    robot: str = setting('icub_right_arm', 'Packaged robot name or YAML path')
+    eye: str = setting('left', 'Which eye the detector uses (its camera pose enters the cost)',
+                       choices=('left', 'right'))
+    progress_file: str = setting('', 'JSON-lines file, one object per iteration')
+    wait_report_period: float = setting(2.0, 'Wall seconds between "waiting for" reports', (0.1, 3600.0))
+
+
+@dataclass(frozen=True)
+class StrategySettings:
+    """The selection strategy and its DIRECT search, as parameters."""
+
+    strategy: str = setting(_SC.strategy.value, 'Selection strategy', choices=tuple(s.value for s in Strategy))
+    seed: int = setting(_SC.seed, 'Seed of the random strategy and randomised DIRECT', (0, 2**31 - 1))
+    gamma: float = setting(_SC.gamma, 'UCSAL weight of the normalised L1 movement', (0.0, 1e9))
+    delta: float = setting(_SC.delta, 'CCSAL half-width of the box around the previous configuration '
+                           '(normalised)', (1e-6, 1.0))
+    algorithm: str = setting(_SC.algorithm, 'NLopt DIRECT variant', choices=tuple(sorted(DIRECT_ALGORITHMS)))
+    max_evals: int = setting(_SC.max_evals, 'Cost evaluations per selection', (10, 10**7))
+
+    def config(self) -> SelectorConfig:
+        """The selector configuration these parameters describe."""
+        return SelectorConfig(strategy=self.strategy, gamma=self.gamma, delta=self.delta,
+                              algorithm=self.algorithm, max_evals=self.max_evals, seed=self.seed)
+
+
+#: Every settings class the selector node declares, in order.
+SETTINGS: tuple[type, ...] = (SelectorNodeSettings, StrategySettings, PlannerSettings, LoopSettings,
+                              NoiseSettings, PoseDependentSettings)

@@ -1,0 +1,159 @@
+"""CalibrationLoop: every transition of the loop's state machine (pure, no rclpy)."""
+import numpy as np
+import pytest
+
+import body_schema
+from active_selector.loop import CalibrationLoop, LoopSettings, LoopStateError, Phase
+from active_selector.planner import Planner, PlannerSettings
+from body_schema.acquisition import SelectorConfig
+from body_schema.noise import PoseDependentNoise
+
+ARM = body_schema.load_robot()
+START = np.mean(ARM.calibration_box, axis=1)
+TOL = 0.002
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+@pytest.fixture
+def loop():
+    planner = Planner(ARM, PoseDependentNoise(), PlannerSettings(SelectorConfig(strategy='random', seed=4)))
+    lp = CalibrationLoop(planner, LoopSettings(iterations=2, settle_tolerance=TOL, settle_timeout=3.0,
+                                               settle_time=0.1, outcome_timeout=1.0), Clock())
+    lp.joint_state(0.0, START)
+    return lp
+
+
+def _command(lp: CalibrationLoop) -> np.ndarray:
+    target = lp.select(None, None, None)
+    assert lp.phase is Phase.MOVING
+    return target
+
+
+def _settle(lp: CalibrationLoop, target: np.ndarray, t: float = 1.0) -> None:
+    """The arm arrives at ``t`` and is still one joint state later."""
+    lp.clock.t = t
+    lp.joint_state(t, target + 0.5 * TOL)
+    assert lp.phase is Phase.MOVING, 'arrived but still moving is not settled'
+    lp.clock.t = t + 0.01
+    lp.joint_state(t + 0.01, target + 0.5 * TOL)
+    assert lp.phase is Phase.AWAITING_OUTCOME
+
+
+def test_select_needs_a_joint_state_and_the_waiting_phase():
+    planner = Planner(ARM, PoseDependentNoise(), PlannerSettings(SelectorConfig(strategy='random')))
+    lp = CalibrationLoop(planner, LoopSettings(), Clock())
+    with pytest.raises(LoopStateError, match='joint state'):
+        lp.select(None, None, None)
+    lp.joint_state(0.0, START)
+    lp.select(None, None, None)
+    assert np.array_equal(planner.start, START)                 # the first joint state is the start
+    with pytest.raises(LoopStateError, match="'moving'"):
+        lp.select(None, None, None)
+
+
+def test_success_needs_a_seen_hand_and_a_verdict_at_the_reached_configuration(loop):
+    target = _command(loop)
+    assert ARM.within_limits(target)
+    loop.joint_state(0.5, START)                                # still at the start
+    assert loop.phase is Phase.MOVING
+    _settle(loop, target)
+    assert loop.markers(1.05, True) is None                     # before settle_time: not the attempt frame
+    assert loop.detected is None
+    assert loop.markers(1.12, True) is None                     # seen; the verdict is still to come
+    assert loop.estimator_outcome('accepted', target + 0.1) is None     # another configuration
+    assert loop.estimator_outcome('duplicate', target) is None          # not a final verdict
+    loop.clock.t = 1.3
+    it = loop.estimator_outcome('accepted', target, 'mahalanobis 1.2')
+    assert it is not None and loop.phase is Phase.WAITING
+    assert it.attempt.outcome == 'accepted' and it.attempt.detected and it.reason == 'mahalanobis 1.2'
+    assert np.allclose(it.attempt.reached, target + 0.5 * TOL)
+    assert it.move_s == pytest.approx(1.01) and it.outcome_s == pytest.approx(0.29)
+    assert it.record['outcome'] == 'accepted' and it.record['discarded'] == 0
+    assert it.record['move_sim_s'] == it.move_s and it.record['sim_time'] == 1.3
+    assert loop.planner.occlusion.n_configs == 1
+
+
+def test_a_verdict_that_came_before_the_frame_still_counts(loop):
+    target = _command(loop)
+    _settle(loop, target)
+    assert loop.estimator_outcome('rejected', target, 'gate') is None   # hand not yet seen
+    it = loop.markers(1.2, True)
+    assert it is not None and it.attempt.outcome == 'rejected'
+
+
+def test_an_empty_frame_after_settling_fails_the_iteration(loop):
+    target = _command(loop)
+    _settle(loop, target)
+    it = loop.markers(1.2, False)
+    assert it.attempt.outcome == 'failed' and not it.attempt.detected
+    assert it.record['discarded'] == 1 and loop.planner.discarded == 1
+    assert loop.estimator_outcome('accepted', target) is None   # too late: the iteration is over
+    assert len(loop.planner.history) == 1
+
+
+def test_a_target_not_reached_in_time_is_unreachable(loop):
+    target = _command(loop)
+    loop.clock.t = 2.0
+    far = target.copy()
+    far[3] += np.radians(10.0)
+    loop.joint_state(2.0, far)
+    assert loop.tick() is None                                  # within settle_timeout
+    loop.clock.t = 3.5
+    it = loop.tick()
+    assert it.attempt.outcome == 'unreachable'
+    assert f'{ARM.joint_names[3]} is 10.00 deg away' in it.reason
+    assert np.array_equal(it.attempt.reached, far) and it.outcome_s == 0.0 and it.move_s == 3.5
+    assert loop.planner.occlusion.n_configs == 0                # an unreached pose teaches nothing
+    assert loop.phase is Phase.WAITING
+
+
+def test_joint_states_from_before_the_command_do_not_settle(loop):
+    loop.clock.t = 5.0
+    target = _command(loop)
+    loop.joint_state(4.0, target)
+    loop.joint_state(4.5, target)
+    assert loop.phase is Phase.MOVING
+
+
+@pytest.mark.parametrize('frame, reason', [(None, 'no /markers frame after settling'),
+                                           (True, 'markers seen but no estimator update')])
+def test_no_outcome_in_time_is_a_timeout(loop, frame, reason):
+    target = _command(loop)
+    _settle(loop, target)
+    if frame is not None:
+        loop.markers(1.2, frame)
+    loop.clock.t = 1.9
+    assert loop.tick() is None
+    loop.clock.t = 2.1
+    it = loop.tick()
+    assert it.attempt.outcome == 'timeout' and reason in it.reason
+    assert it.attempt.detected is bool(frame)
+
+
+def test_the_loop_is_done_after_its_iterations(loop):
+    for i in range(2):
+        target = _command(loop)
+        _settle(loop, target, t=2.0 * i + 1.0)
+        it = loop.markers(2.0 * i + 1.2, False)
+        assert it.attempt.iteration == i + 1
+    assert loop.done and loop.phase is Phase.DONE
+    loop.clock.t = 100.0
+    assert loop.tick() is None
+    with pytest.raises(LoopStateError):
+        loop.select(None, None, None)
+    moved = loop.planner.history[-1].movement_deg
+    assert it.record['movement_deg'] == moved > 0
+
+
+@pytest.mark.parametrize('field, value', [('iterations', 0), ('settle_tolerance', 0.0),
+                                          ('settle_timeout', -1.0), ('settle_time', -0.1)])
+def test_settings_reject_bad_values(field, value):
+    with pytest.raises(ValueError, match=field):
+        LoopSettings(**{field: value})

@@ -1,0 +1,107 @@
+"""One calibration run as a ROS 2 node graph, for full ROS 2 installs (``ros2 launch``).
+
+Usage::
+
+    ros2 launch calibration_bringup calibration.launch.py strategy:=al iterations:=50 seed:=1 \\
+        noise:=pose_dependent output:=results/run
+
+Starts the MCAP recorder, simulator, detector, estimator and selector, each with its parameter
+file from ``share/calibration_bringup/config`` plus the run's arguments, exactly as
+``scripts/run_calibration.sh`` does (the launcher of pip-only installs such as this repository's
+.venv, which has no ``launch`` package); when the selector has finished its iterations the whole
+launch shuts down (SIGINT: the estimator exports its model, the recorder closes the bag). Then
+``calibration_report --bag <output>/calibration.mcap --output <output>`` writes the report.
+
+The node table (:func:`node_specs`) is plain data, importable without ``launch``, so the tests
+check it against the installed executables, parameter files and declared parameters.
+"""
+from __future__ import annotations
+
+import os
+from typing import Any
+
+from body_schema.noise import NOISE_MODELS
+
+#: Launch arguments: name -> (default, description).
+ARGUMENTS: dict[str, tuple[str, str]] = {
+    'strategy': ('al', 'random | al | ucsal | ccsal'),
+    'iterations': ('50', 'measurement attempts (selector iterations)'),
+    'seed': ('1', 'seed of the real robot, the initial guess and the selector'),
+    'noise': ('pose_dependent', "pose_dependent | constant (the paper's CN baseline)"),
+    'rtf': ('1.0', 'simulated seconds per wall second; 0 = as fast as possible'),
+    'record_images': ('true', 'record the camera images (false: smaller bag)'),
+    'output': ('results/run', 'directory of the bag, the model export and progress.jsonl'),
+}
+
+
+def node_specs(args: dict[str, str]) -> list[dict[str, Any]]:
+    """The graph's nodes for launch-argument values ``args`` (every key of :data:`ARGUMENTS`).
+
+    Returns
+    -------
+    list of dict
+        In start order, each with ``name``, ``package``, ``executable``, ``params_file`` (in the
+        package's config directory) and ``parameters`` (overrides, typed).
+    """
+    out = os.path.abspath(args['output'])
+    noise = args['noise']
+    if noise not in NOISE_MODELS:
+        raise ValueError(f'noise must be one of {list(NOISE_MODELS)}, got {noise!r}')
+    seed = int(args['seed'])
+    return [
+        # The recorder first, so every latched fact (true table, initial estimate, camera poses) is in the bag.
+        {'name': 'recorder', 'package': 'calibration_bringup', 'executable': 'recorder_node',
+         'params_file': 'recorder.yaml',
+         'parameters': {'output': os.path.join(out, 'calibration.mcap'),
+                        'exclude_images': args['record_images'].lower() != 'true'}},
+        {'name': 'sim', 'package': 'icub_sim_bridge', 'executable': 'sim_node', 'params_file': 'sim.yaml',
+         'parameters': {'perturb_seed': seed, 'real_time_factor': float(args['rtf'])}},
+        {'name': 'detector', 'package': 'marker_detector', 'executable': 'detector_node',
+         'params_file': 'detector.yaml', 'parameters': {}},
+        {'name': 'estimator', 'package': 'dh_estimator', 'executable': 'estimator_node',
+         'params_file': 'estimator.yaml',
+         'parameters': {'initial_seed': seed, 'noise_model': noise,
+                        'export_dir': os.path.join(out, 'model')}},
+        {'name': 'selector', 'package': 'active_selector', 'executable': 'selector_node',
+         'params_file': 'selector.yaml',
+         'parameters': {'strategy': args['strategy'], 'iterations': int(args['iterations']), 'seed': seed,
+                        'noise_model': noise, 'progress_file': os.path.join(out, 'progress.jsonl')}},
+    ]
+
+
+def generate_launch_description() -> Any:
+    """The launch description: arguments, the Fast DDS profile, the nodes, shutdown after the selector."""
+    from ament_index_python.packages import get_package_share_directory
+    from launch import LaunchDescription
+    from launch.actions import (DeclareLaunchArgument, EmitEvent, OpaqueFunction, RegisterEventHandler,
+                                SetEnvironmentVariable)
+    from launch.event_handlers import OnProcessExit
+    from launch.events import Shutdown
+    from launch.substitutions import EnvironmentVariable
+    from launch_ros.actions import Node
+
+    config = os.path.join(get_package_share_directory('calibration_bringup'), 'config')
+
+    def nodes(context: Any) -> list[Any]:
+        values = {k: context.launch_configurations[k] for k in ARGUMENTS}
+        actions, selector = [], None
+        for spec in node_specs(values):
+            node = Node(package=spec['package'], executable=spec['executable'], output='screen',
+                        parameters=[os.path.join(config, spec['params_file']), spec['parameters']])
+            actions.append(node)
+            if spec['name'] == 'selector':
+                selector = node
+        # The selector exits after its last iteration: that ends the run.
+        actions.append(RegisterEventHandler(OnProcessExit(
+            target_action=selector, on_exit=[EmitEvent(event=Shutdown(reason='calibration finished'))])))
+        return actions
+
+    # Shared-memory segments sized for camera frames, unless the caller chose a profile.
+    profile = os.path.join(config, 'fastdds_shm.xml')
+    env = [SetEnvironmentVariable(v, EnvironmentVariable(v, default_value=profile))
+           for v in ('FASTRTPS_DEFAULT_PROFILES_FILE', 'FASTDDS_DEFAULT_PROFILES_FILE')]
+    return LaunchDescription([
+        *(DeclareLaunchArgument(k, default_value=d, description=text) for k, (d, text) in ARGUMENTS.items()),
+        *env,
+        OpaqueFunction(function=nodes),
+    ])

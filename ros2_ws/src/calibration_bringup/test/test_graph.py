@@ -1,0 +1,59 @@
+"""The in-process graph assembly: parameter layering and callback timing (the whole graph runs in
+tests/test_closed_loop.py and the experiment tests)."""
+from __future__ import annotations
+
+import inspect
+
+import pytest
+from std_msgs.msg import String
+
+from calibration_bringup.graph import (PARAMS_FILES, CallbackTimer, InProcessGraph, config_dir, default_parameters,
+                                       merge_parameters)
+from calibration_interfaces.parameters import read_params_file
+
+
+def test_later_layers_win_per_parameter_and_defaults_are_not_shared() -> None:
+    merged = merge_parameters({'sim': {'a': 1, 'b': 2}}, {'sim': {'b': 3}, 'selector': {'iterations': 3}})
+    assert merged == {'sim': {'a': 1, 'b': 3}, 'selector': {'iterations': 3}}
+    defaults = default_parameters()
+    defaults['detector']['x'] = 1
+    assert 'x' not in default_parameters()['detector']
+
+
+def test_the_graph_runs_with_the_parameter_files_of_the_launcher() -> None:
+    params = default_parameters()
+    for key, (name, node) in PARAMS_FILES.items():
+        from_file = read_params_file(config_dir() / name, node)
+        kept = {k: v for k, v in from_file.items() if k not in ('cameras', 'use_sim_time')}
+        assert kept.items() <= params[key].items(), key
+    assert params['estimator']['iterations'] == 5            # the iterated EKF every run uses
+    # In process: sim as fast as possible, left eye, everything else on its clock, no export.
+    assert params['sim']['real_time_factor'] == 0.0 and params['sim']['cameras'] == ['left']
+    assert all(params[k]['use_sim_time'] for k in ('detector', 'estimator', 'selector'))
+    assert params['estimator']['export_on_shutdown'] is False
+
+
+def test_parameters_for_a_node_the_graph_lacks_are_refused(ros) -> None:
+    with pytest.raises(ValueError, match='selectr'):
+        InProcessGraph(ros.context, ros.executor, {'selectr': {'iterations': 3}})
+
+
+def test_callbacks_created_later_are_timed_and_keep_their_signature(ros) -> None:
+    node = ros.node('timed')
+    timer = CallbackTimer()
+    timer.watch('n', node)
+    infos = []
+    # Created after watch(), like the recorder's subscriptions on discovery; two arguments: rclpy
+    # passes the message info only if the wrapper still shows that signature.
+    sub = node.create_subscription(String, 'chatter', lambda msg, info: infos.append(info), 10)
+    timer.refresh()
+    with pytest.raises(TypeError):
+        inspect.signature(sub.callback).bind(object())
+    pub = ros.node('pub').create_publisher(String, 'chatter', 10)
+    ros.spin_until(lambda: pub.get_subscription_count() > 0, 10.0, 'discovery')
+    pub.publish(String(data='x'))
+    ros.spin_until(lambda: infos, 5.0, 'message')
+    assert 'source_timestamp' in infos[0]
+    assert timer.totals['n'] > 0
+    timer.refresh()                                   # wrapped once, not again
+    assert not hasattr(sub.callback.__wrapped__, '_timed')

@@ -1,0 +1,79 @@
+"""launch/calibration.launch.py: there is no ``launch`` package here, so the file is compiled and
+its node table checked against what exists: installed executables, parameter files, declared
+parameters, and the same nodes as scripts/run_calibration.sh."""
+from __future__ import annotations
+
+import importlib
+import importlib.metadata as md
+import importlib.util
+import inspect
+import re
+from pathlib import Path
+
+import pytest
+from ament_index_python.packages import get_package_share_directory
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+PKG = Path(__file__).resolve().parents[1]
+LAUNCH = PKG / 'launch' / 'calibration.launch.py'
+SCRIPT = PKG.parents[2] / 'scripts' / 'run_calibration.sh'
+
+
+def _launch_module():
+    spec = importlib.util.spec_from_file_location('calibration_launch', LAUNCH)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _specs(tmp_path: Path, **overrides: str) -> list[dict]:
+    mod = _launch_module()
+    args = {k: d for k, (d, _) in mod.ARGUMENTS.items()}
+    return mod.node_specs({**args, 'output': str(tmp_path), **overrides})
+
+
+def _node_class(package: str, executable: str) -> type:
+    (ep,) = [e for e in md.distribution(package).entry_points
+             if e.group == 'console_scripts' and e.name == executable]
+    module = importlib.import_module(ep.module)
+    (cls,) = [c for c in vars(module).values()
+              if inspect.isclass(c) and issubclass(c, Node) and c is not Node and c.__module__ == module.__name__]
+    return cls
+
+
+def test_the_launch_file_compiles_and_is_installed() -> None:
+    compile(LAUNCH.read_text(), str(LAUNCH), 'exec')
+    assert callable(_launch_module().generate_launch_description)
+    installed = Path(get_package_share_directory('calibration_bringup')) / 'launch' / LAUNCH.name
+    assert installed.is_file() and installed.read_bytes() == LAUNCH.read_bytes()
+
+
+def test_it_starts_the_nodes_run_calibration_starts_with_existing_parameter_files(tmp_path: Path) -> None:
+    specs = _specs(tmp_path)
+    started = {(s['package'], s['executable']) for s in specs}
+    in_script = set(re.findall(r'^start \w+ (\w+) (\w+) ', SCRIPT.read_text(), re.M))
+    assert started == in_script and len(started) == 5
+    config = Path(get_package_share_directory('calibration_bringup')) / 'config'
+    for s in specs:
+        assert (config / s['params_file']).is_file(), s
+        _node_class(s['package'], s['executable'])          # the executable exists and has a node
+    assert specs[0]['executable'] == 'recorder_node', 'the recorder starts first'
+
+
+def test_every_override_is_declared_by_its_node(ros, tmp_path: Path) -> None:
+    """A misspelt parameter would be silently ignored by a launched node."""
+    for s in _specs(tmp_path, noise='constant'):
+        cls = _node_class(s['package'], s['executable'])
+        overrides = [Parameter(k, value=v) for k, v in s['parameters'].items()]
+        node = ros.add(cls(context=ros.context, parameter_overrides=overrides))
+        for name, value in s['parameters'].items():
+            assert node.has_parameter(name), f"{s['executable']} does not declare {name!r}"
+            assert node.get_parameter(name).value == value
+        if hasattr(node, 'close'):
+            node.close()
+
+
+def test_bad_noise_model_is_named(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match='pdn'):
+        _specs(tmp_path, noise='pdn')

@@ -1,0 +1,131 @@
+"""The topic contract of the node graph, as data: names, types and QoS (never imports rclpy).
+
+Every node publishes and subscribes the topics listed here with the QoS listed here; the
+recorder, the bag player, the launch script's checks and the offline evaluation read the same
+table, so the contract is written down once. :func:`calibration_interfaces.node_util.qos_profile`
+turns a :class:`QosSpec` into an ``rclpy.qos.QoSProfile``.
+"""
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+__all__ = ['Reliability', 'Durability', 'QosSpec', 'SENSOR', 'RELIABLE', 'LATCHED', 'ContractTopic',
+           'CONTRACT', 'BY_NAME', 'IMAGE_TOPICS', 'topic']
+
+
+class Reliability(enum.StrEnum):
+    """DDS reliability, named as rclpy's ``ReliabilityPolicy`` members (lower case)."""
+
+    RELIABLE = 'reliable'
+    BEST_EFFORT = 'best_effort'
+
+
+class Durability(enum.StrEnum):
+    """DDS durability, named as rclpy's ``DurabilityPolicy`` members (lower case)."""
+
+    VOLATILE = 'volatile'
+    TRANSIENT_LOCAL = 'transient_local'
+
+
+@dataclass(frozen=True)
+class QosSpec:
+    """A keep-last QoS profile as data.
+
+    Attributes
+    ----------
+    reliability : Reliability
+    durability : Durability
+    depth : int
+        History depth (keep last).
+    """
+
+    reliability: Reliability
+    durability: Durability
+    depth: int
+
+    @property
+    def latched(self) -> bool:
+        """Reliable + transient local: a fact a late subscriber still receives."""
+        return self.durability is Durability.TRANSIENT_LOCAL and self.reliability is Reliability.RELIABLE
+
+
+#: Streams of sensor data (rclpy's ``qos_profile_sensor_data``): best effort, keep last 5.
+SENSOR = QosSpec(Reliability.BEST_EFFORT, Durability.VOLATILE, 5)
+#: Messages that must arrive (commands, estimates, outcomes): reliable, keep last 10.
+RELIABLE = QosSpec(Reliability.RELIABLE, Durability.VOLATILE, 10)
+#: Latched facts (the true table, camera poses, the current target): the last one survives.
+LATCHED = QosSpec(Reliability.RELIABLE, Durability.TRANSIENT_LOCAL, 1)
+
+
+@dataclass(frozen=True)
+class ContractTopic:
+    """One topic of the contract.
+
+    Attributes
+    ----------
+    name : str
+        Absolute topic name.
+    type : str
+        ROS 2 type name as ``pkg/msg/Type``.
+    qos : QosSpec
+        What its publisher offers.
+    """
+
+    name: str
+    type: str
+    qos: QosSpec = RELIABLE
+
+    @property
+    def latched(self) -> bool:
+        """Published reliable + transient local (a fact, not a stream)."""
+        return self.qos.latched
+
+    @property
+    def sensor(self) -> bool:
+        """Published best effort (sensor data)."""
+        return self.qos.reliability is Reliability.BEST_EFFORT
+
+
+def _eye(eye: str) -> tuple[ContractTopic, ...]:
+    return (ContractTopic(f'/camera/{eye}/image_raw', 'sensor_msgs/msg/Image', SENSOR),
+            ContractTopic(f'/camera/{eye}/camera_info', 'sensor_msgs/msg/CameraInfo', LATCHED),
+            ContractTopic(f'/camera/{eye}/pose', 'geometry_msgs/msg/PoseStamped', LATCHED))
+
+
+CONTRACT: tuple[ContractTopic, ...] = (
+    ContractTopic('/clock', 'rosgraph_msgs/msg/Clock'),
+    ContractTopic('/joint_states', 'sensor_msgs/msg/JointState'),
+    # The selector latches its current target, so a late recorder still records the first one.
+    ContractTopic('/arm/command', 'trajectory_msgs/msg/JointTrajectory', LATCHED),
+    *_eye('left'),
+    *_eye('right'),
+    ContractTopic('/hand_pose', 'geometry_msgs/msg/PoseWithCovarianceStamped'),
+    ContractTopic('/markers', 'geometry_msgs/msg/PoseArray'),
+    ContractTopic('/body_schema/estimate', 'std_msgs/msg/Float64MultiArray', LATCHED),
+    ContractTopic('/body_schema/covariance', 'std_msgs/msg/Float64MultiArray', LATCHED),
+    ContractTopic('/body_schema/true', 'std_msgs/msg/Float64MultiArray', LATCHED),
+    # The estimator's per-attempt outcome (keys: calibration_interfaces.outcome.StatusKey) and
+    # the selector's per-iteration record (JSON), which the offline evaluation aligns on.
+    ContractTopic('/body_schema/update_status', 'diagnostic_msgs/msg/DiagnosticStatus'),
+    ContractTopic('/calibration/progress', 'std_msgs/msg/String'),
+)
+
+BY_NAME: dict[str, ContractTopic] = {t.name: t for t in CONTRACT}
+
+#: Topics whose bandwidth dominates a bag; experiments leave them out.
+IMAGE_TOPICS: tuple[str, ...] = tuple(t.name for t in CONTRACT if t.name.endswith('/image_raw'))
+
+
+def topic(name: str) -> ContractTopic:
+    """The contract entry of ``name``.
+
+    Raises
+    ------
+    KeyError
+        If ``name`` is not a contract topic; the message lists the known names.
+    """
+    try:
+        return BY_NAME[name]
+    except KeyError:
+        raise KeyError(f'{name!r} is not a contract topic; known: {sorted(BY_NAME)}') from None

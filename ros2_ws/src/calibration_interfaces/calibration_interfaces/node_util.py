@@ -1,0 +1,140 @@
+"""Helpers every node shares (imports rclpy; the pure modules of this package do not).
+
+* :func:`qos_profile`: the ``rclpy.qos.QoSProfile`` of a contract topic or a :class:`QosSpec`;
+* :func:`descriptor` and :func:`declare_settings`: parameters declared from a settings dataclass
+  (:mod:`calibration_interfaces.parameters`);
+* :class:`WarnOnce`: a warning logged once per key;
+* :func:`message_class`.
+"""
+from __future__ import annotations
+
+import importlib
+from collections.abc import Mapping
+from typing import Any
+
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.exceptions import ParameterUninitializedException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from .contract import Durability, QosSpec, Reliability, topic
+from .parameters import ParameterSpec, parameter_specs, settings_from_parameters
+
+__all__ = ['qos_profile', 'descriptor', 'declare_settings', 'WarnOnce', 'message_class']
+
+
+def qos_profile(spec: QosSpec | str, depth: int | None = None) -> QoSProfile:
+    """The QoS profile of a contract topic (by name) or of a :class:`QosSpec`.
+
+    Parameters
+    ----------
+    spec : QosSpec or str
+        A spec, or the name of a contract topic (its publisher's QoS).
+    depth : int, optional
+        Keep-last depth instead of the spec's (a subscriber's queue).
+
+    Raises
+    ------
+    KeyError
+        If ``spec`` names no contract topic.
+    """
+    s = topic(spec).qos if isinstance(spec, str) else spec
+    return QoSProfile(
+        depth=s.depth if depth is None else depth, history=HistoryPolicy.KEEP_LAST,
+        reliability=(ReliabilityPolicy.RELIABLE if s.reliability is Reliability.RELIABLE
+                     else ReliabilityPolicy.BEST_EFFORT),
+        durability=(DurabilityPolicy.TRANSIENT_LOCAL if s.durability is Durability.TRANSIENT_LOCAL
+                    else DurabilityPolicy.VOLATILE))
+
+
+def descriptor(description: str, range: tuple[float, float] | None = None, *,  # noqa: A002
+               integer: bool = False, read_only: bool = False) -> ParameterDescriptor:
+    """A parameter descriptor with a description and, optionally, an inclusive range."""
+    d = ParameterDescriptor(description=description, read_only=read_only)
+    if range is not None:
+        if integer:
+            d.integer_range = [IntegerRange(from_value=int(range[0]), to_value=int(range[1]))]
+        else:
+            d.floating_point_range = [FloatingPointRange(from_value=float(range[0]), to_value=float(range[1]))]
+    return d
+
+
+_ARRAY_TYPES = {'string': Parameter.Type.STRING_ARRAY, 'double': Parameter.Type.DOUBLE_ARRAY,
+                'integer': Parameter.Type.INTEGER_ARRAY}
+
+
+def _declare(node: Node, spec: ParameterSpec, default: Any, read_only: bool) -> Any:
+    desc = descriptor(spec.full_description, spec.range,
+                      integer=isinstance(default, int) and not isinstance(default, bool), read_only=read_only)
+    if isinstance(default, tuple) and not default:
+        # rclpy cannot type an empty list: declare the array type without a value (unset = empty).
+        node.declare_parameter(spec.name, _ARRAY_TYPES[spec.array_type], desc)
+        try:
+            return tuple(node.get_parameter(spec.name).value or ())
+        except ParameterUninitializedException:
+            return ()
+    value = list(default) if isinstance(default, tuple) else default
+    return node.declare_parameter(spec.name, value, desc).value
+
+
+def declare_settings(node: Node, cls: type, *, defaults: Mapping[str, Any] | None = None,
+                     read_only: bool = False, **fixed: Any) -> Any:
+    """Declare the parameters of settings dataclass ``cls`` on ``node``; return the settings.
+
+    Parameters
+    ----------
+    node : Node
+    cls : type
+        A dataclass whose parameter fields are declared with
+        :func:`calibration_interfaces.parameters.setting`.
+    defaults : mapping, optional
+        Defaults that depend on the robot, by parameter name (the field's description says so).
+    read_only : bool
+        Declare the parameters read-only (they are read once at start).
+    **fixed
+        Values of fields that are not parameters.
+
+    Raises
+    ------
+    ValueError
+        If a string parameter is not one of its choices (or the dataclass rejects a value).
+    """
+    defaults = defaults or {}
+    values = {s.name: _declare(node, s, defaults.get(s.name, s.default), read_only)
+              for s in parameter_specs(cls)}
+    return settings_from_parameters(cls, values, **fixed)
+
+
+class WarnOnce:
+    """Logs a warning the first time a key is seen (a malformed stream warns once, not per message).
+
+    Parameters
+    ----------
+    node : Node
+        Whose logger is used.
+    """
+
+    def __init__(self, node: Node) -> None:
+        self._logger = node.get_logger()
+        self.keys: set[str] = set()
+
+    def __call__(self, key: str, text: str) -> None:
+        if key not in self.keys:
+            self.keys.add(key)
+            self._logger.warning(text)
+
+
+def message_class(type_name: str) -> type:
+    """The Python class of ``pkg/msg/Type``.
+
+    Raises
+    ------
+    ImportError
+        If the package or type is not installed.
+    """
+    pkg, _, name = type_name.partition('/msg/')
+    try:
+        return getattr(importlib.import_module(f'{pkg}.msg'), name)
+    except (ImportError, AttributeError) as exc:
+        raise ImportError(f'message type {type_name!r} is not installed: {exc}') from exc

@@ -1,0 +1,20 @@
+from setuptools import find_packages, setup
+
+package_name = 'calibration_interfaces'
+
+setup(
+    name=package_name,
+    version='0.1.0',
+    packages=find_packages(exclude=['test']),
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
+        ('share/' + package_name, ['package.xml']),
+    ],
+    install_requires=['setuptools'],
+    zip_safe=False,
+    maintainer='body-schema maintainers',
+    maintainer_email='maintainers@body-schema.invalid',
+    description='The interface every node shares: topic contract, messages, DH files, outcomes, node helpers',
+    license='BSD-3-Clause',
+    extras_require={'test': ['pytest']},
+)

@@ -1,0 +1,129 @@
+"""The interface package: DH file round trip, status encoding, outcome vocabulary, parameters from
+settings dataclasses, QoS from the contract, and purity (no rclpy in the pure modules)."""
+from __future__ import annotations
+
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from calibration_interfaces import contract
+from calibration_interfaces.dh_file import DhFileError, read_dh_file, write_dh_file
+from calibration_interfaces.outcome import Outcome, StatusFormatError, StatusKey, decode_status, encode_status
+from calibration_interfaces.parameters import markdown_table, parameter_specs, setting, settings_from_parameters
+
+PURE = ['contract', 'dh_file', 'outcome', 'parameters', 'messages']
+
+
+def test_pure_modules_do_not_import_rclpy() -> None:
+    code = ('import sys\n' + ''.join(f'import calibration_interfaces.{m}\n' for m in PURE)
+            + 'print(sorted(m for m in sys.modules if m.split(".")[0] == "rclpy"))')
+    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == '[]'
+
+
+def test_dh_file_round_trip_with_sigma(tmp_path: Path) -> None:
+    rng = np.random.default_rng(3)
+    dh = rng.uniform(-1, 1, (7, 4))
+    sigma = rng.uniform(0, 0.1, (7, 4))
+    names = [f'j{i}' for i in range(7)]
+    path = write_dh_file(tmp_path / 'out' / 'x_dh.yaml', dh, names, 'arm', sigma, extra={'updates': {'updates': 3}})
+    table = read_dh_file(path, n_joints=7)
+    np.testing.assert_allclose(table.dh, dh, atol=1e-12)
+    np.testing.assert_allclose(table.sigma, sigma, atol=1e-12)
+    assert table.names == tuple(names) and table.robot == 'arm'
+
+
+def test_a_robot_description_is_a_dh_file() -> None:
+    import body_schema
+    from body_schema.robot import robot_path
+
+    arm = body_schema.load_robot()
+    table = read_dh_file(robot_path('icub_right_arm'), n_joints=arm.n_joints)
+    np.testing.assert_allclose(table.dh, arm.dh, atol=1e-12)
+    assert table.sigma is None and table.names == tuple(arm.joint_names)
+
+
+@pytest.mark.parametrize('text, match', [
+    ('joints: []', 'non-empty "joints"'),
+    ('angle_unit: grad\njoints: [{dh: [0, 0, 0, 0]}]', "angle_unit must be 'deg' or 'rad', got 'grad'"),
+    ('joints: [{dh: [0, 0, 0]}]', r'shape \(1, 3\)'),
+    ('joints: [{dh: [0, .nan, 0, 0]}]', 'NaN'),
+    ('joints: [{name: a}]', "every joint needs 'dh'"),
+    ('joints: [{dh: [0, 0, 0, 0]}]', 'expected 7 joints, got 1'),
+    ('joints: [', 'not valid YAML'),
+])
+def test_malformed_dh_files_are_refused_with_the_reason(tmp_path: Path, text: str, match: str) -> None:
+    path = tmp_path / 'bad.yaml'
+    path.write_text(text)
+    with pytest.raises(DhFileError, match=match):
+        read_dh_file(path, n_joints=7)
+
+
+def test_missing_dh_file_is_named(tmp_path: Path) -> None:
+    with pytest.raises(DhFileError, match='nope.yaml'):
+        read_dh_file(tmp_path / 'nope.yaml')
+
+
+def test_status_round_trip_and_errors() -> None:
+    q = np.array([0.1, -0.2, 0.3])
+    kv = encode_status(Outcome.REJECTED, 12.5, q, 5.25, 0.001, {'updates': 4, 'rejected': 1, 'duplicates': 2})
+    assert set(kv) == {k.value for k in StatusKey} and all(type(k) is str for k in kv)
+    s = decode_status(kv)
+    assert s.outcome is Outcome.REJECTED and s.stamp == 12.5 and s.mahalanobis == 5.25
+    np.testing.assert_allclose(s.joints, q)
+    assert s.counters == {'updates': 4, 'rejected': 1, 'duplicates': 2}
+    with pytest.raises(StatusFormatError, match="'joints'"):
+        decode_status({k: v for k, v in kv.items() if k != 'joints'})
+    with pytest.raises(StatusFormatError, match='bogus'):
+        decode_status({**kv, 'outcome': 'bogus'})
+
+
+def test_outcome_values_are_plain_strings() -> None:
+    assert f'{Outcome.ACCEPTED}' == 'accepted' and Outcome('timeout') is Outcome.TIMEOUT
+    assert [o for o in Outcome if o.updated] == [Outcome.ACCEPTED, Outcome.REJECTED]
+
+
+@dataclass(frozen=True)
+class _Demo:
+    rate: float = setting(2.5, 'Camera rate [Hz]', (0.0, 60.0))
+    count: int = setting(3, 'How many', (1, 10), name='n_items')
+    mode: str = setting('a', 'Mode', choices=('a', 'b'))
+    eyes: tuple = setting(('left',), 'Eyes')
+    internal: int = 7
+
+
+def test_parameter_specs_from_dataclass_fields() -> None:
+    specs = {s.name: s for s in parameter_specs(_Demo)}
+    assert list(specs) == ['rate', 'n_items', 'mode', 'eyes']
+    assert specs['n_items'].field == 'count' and specs['rate'].range == (0.0, 60.0)
+    assert specs['mode'].full_description == 'Mode (a | b)'
+    s = settings_from_parameters(_Demo, {'rate': 1.0, 'n_items': 4, 'mode': 'b', 'eyes': ['right']}, internal=1)
+    assert s == _Demo(1.0, 4, 'b', ('right',), 1)
+    with pytest.raises(ValueError, match=r"parameter mode: 'c' is not one of \['a', 'b'\]"):
+        settings_from_parameters(_Demo, {'mode': 'c'})
+    table = markdown_table(_Demo)
+    assert "| `n_items` | `3` | 1 .. 10 | How many |" in table and "| `mode` | `'a'` | a \\| b | Mode |" in table
+
+
+def test_setting_refuses_a_mutable_default() -> None:
+    with pytest.raises(TypeError, match='use a tuple'):
+        setting([1.0], 'list')
+
+
+def test_contract_qos() -> None:
+    from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
+
+    from calibration_interfaces.node_util import qos_profile
+
+    latched = qos_profile('/body_schema/estimate')
+    assert (latched.depth, latched.durability, latched.reliability) == (
+        1, DurabilityPolicy.TRANSIENT_LOCAL, ReliabilityPolicy.RELIABLE)
+    img = qos_profile('/camera/left/image_raw', depth=2)
+    assert (img.depth, img.reliability) == (2, ReliabilityPolicy.BEST_EFFORT)
+    assert contract.topic('/camera/left/pose').latched and contract.topic('/camera/left/image_raw').sensor
+    with pytest.raises(KeyError, match='/nope'):
+        qos_profile('/nope')

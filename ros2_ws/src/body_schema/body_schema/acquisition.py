@@ -354,7 +354,7 @@ class SelectorConfig:
     max_evals: int = 1000
     n_candidates: int = 512
     refine_starts: int = 1
-    refine_evals: int = 60
+    refine_evals: int = 75
     local_algorithm: str = 'BOBYQA'
     repeat_tolerance: float = 2e-3
     seed: int = 0
@@ -571,8 +571,8 @@ class JointSelector:
         approaches only slowly. Greedily setting single joints to a bound or to ``anchor`` (one
         batch of ``<= 3 L`` variants per step) lands there exactly when that is better; the second
         refinement then moves only the joints not snapped. Round 1 refines the best
-        ``refine_starts`` candidates with ``refine_evals`` evaluations each, round 2 the incumbent
-        with half as many.
+        ``refine_starts`` candidates with ``refine_evals`` evaluations each, round 2 (only if
+        something snapped) the incumbent with half as many.
         """
         cfg = self.config
         lo, hi = bounds[:, 0], bounds[:, 1]
@@ -590,7 +590,10 @@ class JointSelector:
                 free = np.ones(lo.size, bool) if rnd == 0 else ~np.any(targets == count.best_x, axis=0)
                 for x0 in (starts if rnd == 0 else [count.best_x]):
                     self._local(count, x0, lo, hi, free, cfg.refine_evals if rnd == 0 else cfg.refine_evals // 2)
+            before = count.best_x
             self._snap(count, targets)
+            if count.best_x is before:      # nothing snapped: a second round would repeat the first
+                break
         return count.best_x, count.best, count.evals, count.excluded, f'batch:{cfg.local_algorithm}'
 
     def _local(self, count: '_Counted', x0: NDArray[np.float64], lo: NDArray[np.float64],

@@ -14,13 +14,13 @@ import json
 import sys
 import time
 from dataclasses import dataclass, field, replace
-from typing import Sequence
+from typing import Callable, Sequence
 
 import cv2
 import numpy as np
 
 from body_schema import ArmModel, load_robot, sampling
-from body_schema.acquisition import SelectorConfig
+from body_schema.acquisition import CRITERIA, OCCLUSION_MODES, OPTIMIZERS, SelectorConfig
 from body_schema.metrics import PoseErrorEvaluator
 from body_schema.noise import ConstantNoise, NoiseModel, PoseDependentNoise
 from calibration_interfaces.outcome import Outcome
@@ -29,7 +29,7 @@ from dh_estimator.estimator import EstimatorSettings, OnlineEstimator
 from active_selector.loop import CalibrationLoop, LoopSettings
 from active_selector.planner import Planner, PlannerSettings
 
-__all__ = ['EpisodeResult', 'run_episode', 'main']
+__all__ = ['EpisodeResult', 'run_episode', 'run_seed', 'main']
 
 _DEF = PlannerSettings()
 
@@ -64,8 +64,13 @@ class _StepClock:
 def run_episode(model: ArmModel, world: object, x0: np.ndarray,
                 settings: PlannerSettings, noise: NoiseModel, iterations: int,
                 start: np.ndarray, evaluator: PoseErrorEvaluator,
-                estimator_settings: EstimatorSettings = EstimatorSettings()) -> EpisodeResult:
-    """One calibration run of ``iterations`` attempts; errors scored after each."""
+                estimator_settings: EstimatorSettings = EstimatorSettings(),
+                on_select: Callable[[Planner, np.ndarray, np.ndarray], None] | None = None) -> EpisodeResult:
+    """One calibration run of ``iterations`` attempts; errors scored after each.
+
+    ``on_select(planner, dh, P)``, if given, sees the selection state before each selection
+    (the acquisition benchmark records states with it).
+    """
     from marker_detector.detection import HandPoseEstimator
 
     cam = model.camera_pose('left')
@@ -81,6 +86,8 @@ def run_episode(model: ArmModel, world: object, x0: np.ndarray,
     used = []
     t0 = time.perf_counter()
     while not loop.done:
+        if on_select is not None:
+            on_select(planner, est.dh, est.P)
         theta = loop.select(est.dh, est.P, cam)
         world.set_joint_positions(theta)            # placed, not moved: it settles at once
         for _ in range(2):
@@ -103,6 +110,23 @@ def run_episode(model: ArmModel, world: object, x0: np.ndarray,
     return EpisodeResult(pos, rot, mov, planner.discarded, time.perf_counter() - t0, used, est)
 
 
+def run_seed(model: ArmModel, noise: NoiseModel, settings: PlannerSettings, seed: int, iterations: int,
+             ekf_iterations: int = 5,
+             on_select: Callable[[Planner, np.ndarray, np.ndarray], None] | None = None,
+             estimator: str = 'map') -> EpisodeResult:
+    """One seeded run: a real robot perturbed by 4 mm / 2 deg (seed ``1000 + seed``), an initial
+    guess with the paper's widths (``seed``), the selector seeded with ``seed``, start at the box centre."""
+    from icub_sim_bridge.world import SimWorld
+
+    true_dh = sampling.perturb_dh(model.dh, 1000 + seed, 0.004, np.radians(2.0))
+    x0 = sampling.perturb_dh(model.dh, seed)
+    evaluator = PoseErrorEvaluator(model.base, true_dh, model.calibration_box)
+    with SimWorld(model, true_dh, head_pose=model.eyes.head_pose) as world:
+        s = replace(settings, selector=replace(settings.selector, seed=seed))
+        return run_episode(model, world, x0, s, noise, iterations, model.calibration_box.mean(axis=1),
+                           evaluator, EstimatorSettings(estimator=estimator, iterations=ekf_iterations), on_select)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     ap.add_argument('--strategy', default='al')
@@ -115,33 +139,29 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument('--length-scale', type=float, default=_DEF.occlusion_length_scale)
     ap.add_argument('--a0', type=float, default=_DEF.occlusion_a0)
     ap.add_argument('--b0', type=float, default=_DEF.occlusion_b0)
-    ap.add_argument('--occlusion-mode', default=_DEF.occlusion_mode)
+    ap.add_argument('--occlusion-mode', default=_DEF.occlusion_mode, choices=OCCLUSION_MODES)
+    ap.add_argument('--criterion', default=_DEF.criterion, choices=CRITERIA)
+    ap.add_argument('--optimizer', default=_DEF.selector.optimizer, choices=OPTIMIZERS)
     ap.add_argument('--max-evals', type=int, default=_DEF.selector.max_evals)
+    ap.add_argument('--n-candidates', type=int, default=_DEF.selector.n_candidates)
+    ap.add_argument('--repeat-tolerance', type=float, default=_DEF.selector.repeat_tolerance)
     ap.add_argument('--noise', default='pose_dependent')
     ap.add_argument('--estimator', default='map', choices=['map', 'ekf'])
     ap.add_argument('--ekf-iterations', type=int, default=5)
     args = ap.parse_args(argv)
 
-    from icub_sim_bridge.world import SimWorld
-
     model = load_robot()
     noise = PoseDependentNoise() if args.noise == 'pose_dependent' else ConstantNoise()
     settings = PlannerSettings(SelectorConfig(strategy=args.strategy, gamma=args.gamma, delta=args.delta,
-                                              max_evals=args.max_evals),
+                                              optimizer=args.optimizer, max_evals=args.max_evals,
+                                              n_candidates=args.n_candidates,
+                                              repeat_tolerance=args.repeat_tolerance),
                                penalty_a=args.penalty_a, penalty_b=args.penalty_b,
                                occlusion_length_scale=args.length_scale, occlusion_a0=args.a0,
-                               occlusion_b0=args.b0, occlusion_mode=args.occlusion_mode)
-    results = []
-    for seed in range(args.seeds):
-        true_dh = sampling.perturb_dh(model.dh, 1000 + seed, 0.004, np.radians(2.0))
-        x0 = sampling.perturb_dh(model.dh, seed)
-        evaluator = PoseErrorEvaluator(model.base, true_dh, model.calibration_box)
-        with SimWorld(model, true_dh, head_pose=model.eyes.head_pose) as world:
-            s = replace(settings, selector=replace(settings.selector, seed=seed))
-            r = run_episode(model, world, x0, s, noise, args.iterations,
-                            model.calibration_box.mean(axis=1), evaluator,
-                            EstimatorSettings(estimator=args.estimator, iterations=args.ekf_iterations))
-        results.append(r)
+                               occlusion_b0=args.b0, occlusion_mode=args.occlusion_mode,
+                               criterion=args.criterion)
+    results = [run_seed(model, noise, settings, seed, args.iterations, args.ekf_iterations, estimator=args.estimator)
+               for seed in range(args.seeds)]
     pos = np.array([r.position_mm for r in results])
     rot = np.array([r.orientation_deg for r in results])
     out = {'args': vars(args),

@@ -11,9 +11,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.stats import qmc
 
 from body_schema import ArmModel
-from body_schema.acquisition import AcquisitionCost, JointSelector, Selection, SelectorConfig, Strategy
+from body_schema.acquisition import (CRITERIA, OCCLUSION_MODES, AcquisitionCost, JointSelector, Selection,
+                                     SelectorConfig, Strategy)
 from body_schema.noise import NoiseModel
 from body_schema.occlusion import OcclusionModel
 from calibration_interfaces.outcome import Outcome
@@ -37,8 +39,17 @@ class PlannerSettings:
     occlusion_length_scale: float = setting(0.5, 'Occlusion kernel length scale (normalised joints)', (1e-4, 10.0))
     occlusion_a0: float = setting(1.0, 'Beta prior successes', (1e-6, 1e6))
     occlusion_b0: float = setting(2.0, 'Beta prior failures', (1e-6, 1e6))
-    occlusion_mode: str = setting('paper', "Failure handling in the cost: 'paper' (C0 / eta) or 'expected'",
-                                  choices=('paper', 'expected'))
+    occlusion_mode: str = setting('paper', "Failure handling in the cost: 'paper' (C0 / eta), 'expected' "
+                                  "(tr(P) - eta g) or 'gain' (-eta g / tr(P))", choices=OCCLUSION_MODES)
+    criterion: str = setting('a_optimal', "Uncertainty the selection reduces: 'a_optimal' (tr P) or "
+                             "'v_optimal' (hand-pose variance over the calibration box)", choices=CRITERIA)
+    box_samples: int = setting(128, 'Configurations (Sobol, fixed) v-optimality averages over; a power of two',
+                               (1, 65536))
+
+    def __post_init__(self) -> None:
+        n = self.box_samples
+        if n < 1 or n & (n - 1):
+            raise ValueError(f'box_samples must be a power of two >= 1 (Sobol balance), got {n}')
 
 
 @dataclass(frozen=True)
@@ -80,6 +91,9 @@ class Planner:
                                         self.settings.occlusion_a0, self.settings.occlusion_b0)
         self.start: NDArray[np.float64] | None = None
         self.movement_deg = 0.0
+        # Fixed (seed 0) so the criterion is the same function in every run and iteration.
+        self.box_configs = box[:, 0] + (box[:, 1] - box[:, 0]) * qmc.Sobol(
+            box.shape[0], rng=0).random_base2(int(np.log2(self.settings.box_samples)))
 
     @property
     def strategy(self) -> Strategy:
@@ -91,6 +105,12 @@ class Planner:
         return self.history[-1].reached if self.history else self.start
 
     @property
+    def visited(self) -> NDArray[np.float64]:
+        """Every configuration targeted or reached so far, shape (K, L); none is selected again."""
+        q = [a.target for a in self.history] + [a.reached for a in self.history]
+        return np.array(q).reshape(-1, self.model.calibration_box.shape[0])
+
+    @property
     def discarded(self) -> int:
         return sum(not a.detected for a in self.history)
 
@@ -100,7 +120,8 @@ class Planner:
         return AcquisitionCost(self.model.base, np.asarray(dh, dtype=float).reshape(self.model.dh.shape),
                                np.asarray(P, dtype=float), self.noise, np.asarray(camera_pose, dtype=float),
                                self.model.markers, occlusion=self.occlusion, penalty_a=s.penalty_a,
-                               penalty_b=s.penalty_b, occlusion_mode=s.occlusion_mode)
+                               penalty_b=s.penalty_b, occlusion_mode=s.occlusion_mode, criterion=s.criterion,
+                               box_configs=self.box_configs)
 
     def select(self, dh: ArrayLike | None, P: ArrayLike | None,  # noqa: N803
                camera_pose: ArrayLike | None) -> Selection:
@@ -108,7 +129,7 @@ class Planner:
         if self.start is None:
             raise RuntimeError('Planner.start (the initial configuration) must be set before selecting')
         cost = None if self.strategy is Strategy.RANDOM else self.cost(dh, P, camera_pose)
-        return self.selector.select(cost, self.previous)
+        return self.selector.select(cost, self.previous, self.visited)
 
     def record(self, target: ArrayLike, reached: ArrayLike, outcome: Outcome | str, detected: bool,
                selection_seconds: float) -> Attempt:

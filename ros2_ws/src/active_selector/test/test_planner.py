@@ -26,3 +26,32 @@ def test_select_and_record(strategy):
     b = pl.record(sel.theta, pl.start, 'accepted', True, 0.0)
     assert b.movement_deg == pytest.approx(2 * a.movement_deg)
     assert pl.previous is not None and np.array_equal(pl.previous, pl.start)
+
+
+@pytest.mark.parametrize('criterion', ['a_optimal', 'v_optimal'])
+def test_planner_never_revisits_and_passes_the_new_modes(criterion):
+    settings = PlannerSettings(SelectorConfig(strategy='al', optimizer='batch', n_candidates=256, seed=4),
+                               occlusion_mode='gain', criterion=criterion, box_samples=32)
+    pl = Planner(ARM, PoseDependentNoise(), settings)
+    pl.start = np.mean(ARM.calibration_box, axis=1)
+    P = sampling.initial_covariance(7)
+    cost = pl.cost(ARM.dh, P, ARM.camera_pose())
+    assert cost.criterion == criterion and cost.occlusion_mode == 'gain'
+    assert pl.box_configs.shape == (32, 7)
+    first = pl.select(ARM.dh, P, ARM.camera_pose())
+    assert first.optimizer == 'batch:BOBYQA'
+    # A fresh planner (same seed, same candidates) that has visited `first` but learned nothing
+    # from it would pick `first` again were it not for the visited list.
+    again = Planner(ARM, PoseDependentNoise(), settings)
+    again.start = pl.start
+    again.record(first.theta, first.theta, 'failed', False, first.seconds)
+    again.occlusion = Planner(ARM, PoseDependentNoise(), settings).occlusion
+    assert again.visited.shape == (2, 7)
+    second = again.select(ARM.dh, P, ARM.camera_pose())
+    assert second.excluded >= 1
+    assert np.max(np.abs(second.theta - first.theta)) > settings.selector.repeat_tolerance
+
+
+def test_box_samples_must_be_a_power_of_two():
+    with pytest.raises(ValueError, match='box_samples.*100'):
+        PlannerSettings(box_samples=100)

@@ -59,6 +59,8 @@ def view_geometry(camera_pose: ArrayLike, marker_pose: ArrayLike) -> tuple[NDArr
 
 def _assemble(var_pos: ArrayLike, var_rot: ArrayLike) -> NDArray[np.float64]:
     """``diag(s_p^2 I3, s_o^2 I3)`` for variances of shape (...) -> (..., 6, 6)."""
+    if np.ndim(var_pos) == 0 and np.ndim(var_rot) == 0:      # one pose: 5x cheaper (the selector's local search)
+        return np.diag([var_pos, var_pos, var_pos, var_rot, var_rot, var_rot]).astype(float)
     vp, vo = np.broadcast_arrays(np.asarray(var_pos, dtype=float), np.asarray(var_rot, dtype=float))
     return np.stack([vp, vp, vp, vo, vo, vo], axis=-1)[..., None] * np.eye(6)
 

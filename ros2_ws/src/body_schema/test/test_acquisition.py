@@ -122,3 +122,198 @@ def test_bad_configuration_raises(arm, cost):
     with pytest.raises(ValueError, match='NaN'):
         AcquisitionCost(arm.base, np.full((7, 4), np.nan), np.eye(28), PoseDependentNoise(),
                         np.eye(4), arm.markers)
+
+
+# --- information gain, v-optimality, batched evaluation, batch optimiser, no repeats (issue 14) ---
+
+from scipy.stats import qmc  # noqa: E402
+
+from body_schema import kinematics  # noqa: E402
+from body_schema.acquisition import (CRITERIA, DETECTOR_NOISE_SCALES, OCCLUSION_MODES,  # noqa: E402
+                                     box_pose_weight, information_gain)
+
+
+@pytest.fixture(scope='module')
+def box_configs(arm):
+    box = arm.calibration_box
+    return box[:, 0] + (box[:, 1] - box[:, 0]) * qmc.Sobol(7, rng=0).random_base2(5)
+
+
+@pytest.fixture(scope='module')
+def learned_occlusion(arm):
+    occ = OcclusionModel(arm.calibration_box, 0.5, 1.0, 2.0)
+    rng = np.random.default_rng(11)
+    for t in sampling.uniform_configs(arm.calibration_box, 20, rng):
+        occ.add(t, bool(rng.random() < 0.6))
+    return occ
+
+
+def _cost(arm, box_configs, occlusion, mode='paper', criterion='a_optimal', P=None, seed=4):
+    dh = sampling.perturb_dh(arm.dh, seed)
+    return AcquisitionCost(arm.base, dh, sampling.initial_covariance(7) if P is None else P, PoseDependentNoise(),
+                           arm.camera_pose('left'), arm.markers, occlusion=occlusion, penalty_a=0.05,
+                           penalty_b=10.0, occlusion_mode=mode, criterion=criterion, box_configs=box_configs)
+
+
+def _posterior_covariance(arm, cost, q):
+    """Brute force: one real EKF update at q with the noise the cost predicts there."""
+    R = cost.noise.hand_covariance(cost.camera_pose, kinematics.forward_kinematics(arm.base, cost.dh, q),
+                                   arm.markers)
+    f = ekf.ExtendedKalmanFilter(cost.dh.ravel(), cost.P)
+    ekf.HandPoseModel(arm.base, 7).update(f, q, kinematics.forward_kinematics(arm.base, cost.dh, q), R)
+    return f.P
+
+
+@pytest.mark.parametrize('criterion', CRITERIA)
+@pytest.mark.parametrize('mode', OCCLUSION_MODES)
+def test_batched_evaluation_equals_single(arm, box_configs, learned_occlusion, criterion, mode):
+    cost = _cost(arm, box_configs, learned_occlusion, mode, criterion)
+    qs = sampling.uniform_configs(arm.calibration_box, 64, 5)
+    batch = cost.evaluate(qs)
+    single = np.array([cost(q) for q in qs])
+    np.testing.assert_allclose(batch, single, rtol=1e-12, atol=1e-15)
+    assert np.ptp(batch) > 0                               # not a constant function
+    gain, eta, px = cost.terms_batch(qs)
+    np.testing.assert_allclose(eta, learned_occlusion.mean(qs), rtol=1e-12)
+    np.testing.assert_allclose(px, kinematics.forward_kinematics(arm.base, cost.dh, qs)[:, 0, 3], rtol=1e-12)
+
+
+def test_a_optimal_gain_is_the_trace_reduction_of_a_real_update(arm, box_configs):
+    P = np.diag(np.random.default_rng(2).uniform(0.2, 1.5, 28)) @ sampling.initial_covariance(7)
+    cost = _cost(arm, box_configs, None, 'gain', 'a_optimal', P=P)
+    for q in sampling.uniform_configs(arm.calibration_box, 4, 6):
+        c0, eta, _ = cost.terms(q)
+        gain = cost.terms_batch(q[None])[0][0]
+        assert eta == 1.0
+        assert gain == pytest.approx(np.trace(P) - c0, rel=1e-12)
+        assert c0 == pytest.approx(np.trace(_posterior_covariance(arm, cost, q)), rel=1e-9)
+        H = kinematics.pose_jacobian_dh(arm.base, cost.dh, q)
+        R = cost.noise.hand_covariance(cost.camera_pose, kinematics.forward_kinematics(arm.base, cost.dh, q),
+                                       arm.markers)
+        assert expected_trace(P, H, R) == pytest.approx(c0, rel=1e-12)
+
+
+def test_v_optimal_gain_against_brute_force_posterior_pose_variance(arm, box_configs):
+    cost = _cost(arm, box_configs, None, 'gain', 'v_optimal', seed=8)
+    s_pos, s_rot = DETECTOR_NOISE_SCALES
+    W = np.diag([s_pos ** -2] * 3 + [s_rot ** -2] * 3)
+    jac = kinematics.pose_jacobian_dh(arm.base, cost.dh, box_configs)            # (M, 6, 28)
+
+    def box_variance(P):                                                        # mean_i tr(W J_i P J_i^T)
+        return np.mean([np.trace(W @ J @ P @ J.T) for J in jac])
+
+    assert cost.uncertainty == pytest.approx(box_variance(cost.P), rel=1e-10)
+    for q in sampling.uniform_configs(arm.calibration_box, 4, 7):
+        gain = cost.terms_batch(q[None])[0][0]
+        assert gain == pytest.approx(box_variance(cost.P) - box_variance(_posterior_covariance(arm, cost, q)),
+                                     rel=1e-7)
+    # v-optimality ranks configurations differently from the plain trace
+    qs = sampling.uniform_configs(arm.calibration_box, 200, 9)
+    g_v = cost.terms_batch(qs)[0]
+    g_a = _cost(arm, box_configs, None, 'gain', 'a_optimal', seed=8).terms_batch(qs)[0]
+    assert np.argmax(g_v) != np.argmax(g_a) or np.corrcoef(g_v, g_a)[0, 1] < 0.999
+
+
+def test_information_gain_with_identity_weight_is_a_optimal():
+    rng = np.random.default_rng(3)
+    hp = rng.normal(size=(5, 6, 10))
+    a = rng.normal(size=(5, 6, 6))
+    s = a @ np.swapaxes(a, -1, -2) + np.eye(6)
+    np.testing.assert_allclose(information_gain(hp, s, np.eye(10)), information_gain(hp, s), rtol=1e-12)
+    ref = [np.trace(np.linalg.inv(s[i]) @ hp[i] @ hp[i].T) for i in range(5)]
+    np.testing.assert_allclose(information_gain(hp, s), ref, rtol=1e-10)
+
+
+def test_gain_mode_discounts_the_gain_by_eta(arm, box_configs, learned_occlusion):
+    cost = _cost(arm, box_configs, learned_occlusion, 'gain')
+    qs = sampling.uniform_configs(arm.calibration_box, 16, 12)
+    gain, eta, px = cost.terms_batch(qs)
+    np.testing.assert_allclose(cost.evaluate(qs), -eta * gain / np.trace(cost.P) + 0.05 * np.arctan(10.0 * px),
+                               rtol=1e-12)
+    paper = _cost(arm, box_configs, learned_occlusion, 'paper')
+    np.testing.assert_allclose(paper.evaluate(qs), (np.trace(cost.P) - gain) / eta + 0.05 * np.arctan(10.0 * px),
+                               rtol=1e-12)
+
+
+def test_box_pose_weight_rejects_bad_inputs(arm):
+    with pytest.raises(ValueError, match='noise_scales'):
+        box_pose_weight(arm.base, arm.dh, np.zeros((2, 7)), (0.0, 0.01))
+    with pytest.raises(ValueError, match=r'box_configs must have shape \(M, L\)'):
+        box_pose_weight(arm.base, arm.dh, np.zeros((0, 7)))
+
+
+@pytest.mark.parametrize('optimizer', ['direct', 'batch'])
+def test_no_configuration_is_selected_twice(arm, box_configs, learned_occlusion, optimizer):
+    cost = _cost(arm, box_configs, learned_occlusion, 'gain')
+    cfg = SelectorConfig(strategy='al', optimizer=optimizer, max_evals=300, n_candidates=256, seed=2)
+    first = JointSelector(arm.calibration_box, cfg).select(cost)
+    again = JointSelector(arm.calibration_box, cfg).select(cost, None, first.theta[None])
+    assert np.max(np.abs(again.theta - first.theta)) > cfg.repeat_tolerance
+    # The objective itself: inf within the tolerance of a visited configuration, finite outside.
+    sel = JointSelector(arm.calibration_box, cfg)
+    tree = sel.visited_tree(first.theta[None])
+    step = np.zeros(7)
+    step[3] = 0.9 * cfg.repeat_tolerance
+    near_far = np.stack([first.theta + step, first.theta + 1.2 * step / 0.9 * 2])
+    v = sel.objective(cost, near_far, None, tree)
+    assert np.isinf(v[0]) and np.isfinite(v[1])
+    many = np.repeat(near_far, 10, axis=0)                  # the tree query path (N > 8) agrees
+    np.testing.assert_array_equal(sel.is_repeat(many, tree), np.repeat([True, False], 10))
+
+
+def test_every_candidate_a_repeat_raises(arm, box_configs):
+    cost = _cost(arm, box_configs, None, 'gain')
+    sel = JointSelector(arm.calibration_box, SelectorConfig(optimizer='batch', n_candidates=64,
+                                                            repeat_tolerance=10.0))
+    with pytest.raises(RuntimeError, match='repeat a visited one'):
+        sel.select(cost, None, np.mean(arm.calibration_box, axis=1)[None])
+
+
+@pytest.mark.parametrize('strategy', ['al', 'ucsal', 'ccsal'])
+def test_batch_optimizer_record_bounds_and_quality(arm, box_configs, learned_occlusion, strategy):
+    cost = _cost(arm, box_configs, learned_occlusion, 'gain', 'v_optimal')
+    cfg = SelectorConfig(strategy=strategy, optimizer='batch', n_candidates=512, refine_starts=2,
+                         refine_evals=20, seed=3)
+    prev = sampling.uniform_configs(arm.calibration_box, 1, 4)[0]
+    sel = JointSelector(arm.calibration_box, cfg)
+    s = sel.select(cost, prev)
+    assert s.optimizer == 'batch:BOBYQA'
+    # candidates; 2 local starts of 1 + 20 and 1 of 1 + 10 evaluations; 2 snapping rounds of <= 7 steps x 21
+    assert 512 < s.evaluations <= 512 + 2 * 21 + 11 + 2 * 7 * 21
+    assert _inside(s.theta, s.bounds)
+    cand = sampling.uniform_configs(s.bounds, 500, 21)
+    assert s.cost <= np.min(sel.objective(cost, cand, prev))     # beats 500 uniform draws
+    assert s.cost == pytest.approx(float(sel.objective(cost, s.theta[None], prev)[0]), rel=1e-12)
+    again = JointSelector(arm.calibration_box, cfg).select(cost, prev)
+    np.testing.assert_array_equal(s.theta, again.theta)         # seeded: reproducible
+    d = JointSelector(arm.calibration_box, SelectorConfig(strategy=strategy, max_evals=100)).select(cost, prev)
+    assert d.optimizer == 'direct:DIRECT_L' and d.evaluations >= 100
+
+
+def test_new_settings_reject_bad_values(arm, box_configs):
+    with pytest.raises(ValueError, match="unknown optimizer 'cmaes'"):
+        SelectorConfig(optimizer='cmaes')
+    with pytest.raises(ValueError, match='n_candidates must be a power of two >= 16.*1000'):
+        SelectorConfig(n_candidates=1000)
+    with pytest.raises(ValueError, match="unknown local_algorithm 'LBFGS'"):
+        SelectorConfig(local_algorithm='LBFGS')
+    with pytest.raises(ValueError, match='repeat_tolerance.*-0.1'):
+        SelectorConfig(repeat_tolerance=-0.1)
+    with pytest.raises(ValueError, match='refine_starts'):
+        SelectorConfig(n_candidates=16, refine_starts=17)
+    with pytest.raises(ValueError, match="criterion must be one of.*'d_optimal'"):
+        _cost(arm, box_configs, None, criterion='d_optimal')
+    with pytest.raises(ValueError, match="occlusion_mode must be one of.*'ratio'"):
+        _cost(arm, box_configs, None, mode='ratio')
+    with pytest.raises(ValueError, match='v_optimal.*box_configs'):
+        _cost(arm, None, None, criterion='v_optimal')
+    cost = _cost(arm, box_configs, None)
+    with pytest.raises(ValueError, match=r'visited must be .*\(K, 7\).*\(3,\)'):
+        JointSelector(arm.calibration_box).select(cost, None, np.zeros(3))
+
+
+def test_batch_snaps_onto_the_previous_configuration_under_a_huge_ucsal_weight(arm, cost):
+    prev = sampling.uniform_configs(arm.calibration_box, 1, 5)[0]
+    cfg = SelectorConfig(strategy='ucsal', gamma=1e6, optimizer='batch', n_candidates=256, seed=1)
+    s = JointSelector(arm.calibration_box, cfg).select(cost, prev)
+    np.testing.assert_array_equal(s.theta, prev)      # exactly: the L1 kink, not merely near it

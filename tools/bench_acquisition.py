@@ -7,8 +7,9 @@ same objective, for each criterion x occlusion mode x strategy. Reports the frac
 the batch's objective is at least as good as DIRECT's (within a relative 1e-6) and the wall time of
 one selection (median, p90; cost construction included).
 
-``study``: final errors over seeds for a few selector variants (EKF loop without ROS), with the
-per-seed spread, movement, discarded attempts and repeated configurations.
+``study``: final errors over seeds for selector variants (the study loop without ROS, MAP estimator
+by default), with the per-seed spread, movement, discarded attempts and repeated configurations;
+``study --sweep al|ucsal|ccsal --seeds 20 --jobs 2`` runs the sweeps of issue 14 item 5.
 
 Run from the repository root with the workspace's venv, e.g.
 ``.venv/bin/python -m tools.bench_acquisition bench`` or ``... study --seeds 10``.
@@ -160,41 +161,83 @@ def repeats(planner: Planner) -> int:
     return n
 
 
-#: Selector variants of the study; 'old' is main's selector (no repeat exclusion).
+#: Selector variants of the study; 'old' is main's selector (no repeat exclusion). Each maps to
+#: overrides of PlannerSettings (strategy, occlusion_mode, criterion, penalty_a, occlusion_a0 / b0)
+#: and SelectorConfig (optimizer, repeat_tolerance, gamma, delta).
 VARIANTS = {
     'old: paper, DIRECT, a_optimal': dict(occlusion_mode='paper', optimizer='direct', criterion='a_optimal',
                                           repeat_tolerance=0.0),
-    'new: gain, batch, a_optimal': dict(occlusion_mode='gain', optimizer='batch', criterion='a_optimal',
-                                        repeat_tolerance=SelectorConfig.repeat_tolerance),
-    'new: gain, batch, v_optimal': dict(occlusion_mode='gain', optimizer='batch', criterion='v_optimal',
-                                        repeat_tolerance=SelectorConfig.repeat_tolerance),
+    'new: gain, batch, a_optimal': dict(occlusion_mode='gain', optimizer='batch', criterion='a_optimal'),
+    'new: gain, batch, v_optimal': dict(occlusion_mode='gain', optimizer='batch', criterion='v_optimal'),
     # which change does what: the paper's objective with the new optimiser and no-repeat rule
-    'paper, batch, a_optimal': dict(occlusion_mode='paper', optimizer='batch', criterion='a_optimal',
-                                    repeat_tolerance=SelectorConfig.repeat_tolerance),
-    'paper, batch, v_optimal': dict(occlusion_mode='paper', optimizer='batch', criterion='v_optimal',
-                                    repeat_tolerance=SelectorConfig.repeat_tolerance),
+    'paper, batch, a_optimal': dict(occlusion_mode='paper', optimizer='batch', criterion='a_optimal'),
+    'paper, batch, v_optimal': dict(occlusion_mode='paper', optimizer='batch', criterion='v_optimal'),
 }
 
+_V = dict(optimizer='batch', criterion='v_optimal')
+#: Sweeps of issue 14 item 5, with the MAP estimator (``study --sweep NAME``).
+SWEEPS: dict[str, dict[str, dict[str, object]]] = {
+    'al': {
+        'R (random)': dict(strategy='random'),
+        **{name: dict(strategy='al', **v) for name, v in VARIANTS.items()},
+        'gain, batch, v_optimal, prior Be(1, 1)': dict(strategy='al', occlusion_mode='gain', occlusion_b0=1.0, **_V),
+        'gain, batch, v_optimal, prior Be(2, 1)': dict(strategy='al', occlusion_mode='gain', occlusion_a0=2.0,
+                                                       occlusion_b0=1.0, **_V),
+        'gain, batch, v_optimal, no x-penalty': dict(strategy='al', occlusion_mode='gain', penalty_a=0.0, **_V),
+        'gain, batch, v_optimal, x-penalty 0.2': dict(strategy='al', occlusion_mode='gain', penalty_a=0.2, **_V),
+        'paper, batch, v_optimal, prior Be(1, 1)': dict(strategy='al', occlusion_mode='paper', occlusion_b0=1.0, **_V),
+    },
+    'ucsal': {f'UCSAL gamma {g:g}, {mode}': dict(strategy='ucsal', gamma=g, occlusion_mode=mode, **_V)
+              for mode in ('paper', 'gain') for g in (0.002, 0.005, 0.01, 0.02)},
+    'ccsal': {f'CCSAL delta {d:g}, {mode}': dict(strategy='ccsal', delta=d, occlusion_mode=mode, **_V)
+              for mode in ('paper', 'gain') for d in (0.1, 0.2, 0.3, 0.5)},
+}
 
-def study(model: ArmModel, strategy: str, seeds: Sequence[int], iterations: int,
-          variants: Sequence[str]) -> list[dict[str, object]]:
+_SELECTOR_KEYS = ('strategy', 'optimizer', 'repeat_tolerance', 'gamma', 'delta')
+
+
+def variant_settings(v: dict[str, object]) -> PlannerSettings:
+    """PlannerSettings of a variant (overrides of the defaults)."""
+    sel = {k: v[k] for k in _SELECTOR_KEYS if k in v}
+    rest = {k: x for k, x in v.items() if k not in _SELECTOR_KEYS}
+    return replace(PlannerSettings(), selector=replace(SelectorConfig(), **sel), **rest)
+
+
+def _run_one(task: tuple[str, dict[str, object], int, int, str]) -> tuple[str, int, tuple[float, ...]]:
+    name, v, seed, iterations, estimator = task
+    model = load_robot()
+    seen: list[Planner] = []
+    r = run_seed(model, PoseDependentNoise(), variant_settings(v), seed, iterations,
+                 on_select=lambda pl, dh, P: seen.append(pl) if not seen else None,  # noqa: N803
+                 estimator=estimator)
+    return name, seed, (r.position_mm[-1], r.orientation_deg[-1], r.movement_deg[-1], r.discarded,
+                        repeats(seen[0]), r.seconds)
+
+
+def study(variants: dict[str, dict[str, object]], seeds: Sequence[int], iterations: int,
+          estimator: str = 'map', jobs: int = 1) -> list[dict[str, object]]:
+    """Final errors of each variant over ``seeds`` (tasks spread over ``jobs`` processes)."""
+    from concurrent.futures import ProcessPoolExecutor
+    import multiprocessing
+
+    tasks = [(name, v, seed, iterations, estimator) for name, v in variants.items() for seed in seeds]
+    results: dict[str, dict[int, tuple[float, ...]]] = {name: {} for name in variants}
+    if jobs > 1:
+        with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context('spawn')) as pool:
+            for name, seed, final in pool.map(_run_one, tasks):
+                results[name][seed] = final
+                print(json.dumps({'variant': name, 'seed': seed, 'final': final}), file=sys.stderr, flush=True)
+    else:
+        for task in tasks:
+            name, seed, final = _run_one(task)
+            results[name][seed] = final
+            print(json.dumps({'variant': name, 'seed': seed, 'final': final}), file=sys.stderr, flush=True)
     rows = []
     for name in variants:
-        v = VARIANTS[name]
-        settings = PlannerSettings(SelectorConfig(strategy=strategy, optimizer=v['optimizer'],
-                                                  repeat_tolerance=v['repeat_tolerance']),
-                                   occlusion_mode=v['occlusion_mode'], criterion=v['criterion'])
-        finals = []
-        for seed in seeds:
-            seen: list[Planner] = []
-            r = run_seed(model, PoseDependentNoise(), settings, seed, iterations,
-                         on_select=lambda pl, dh, P: seen.append(pl) if not seen else None)  # noqa: N803
-            finals.append((r.position_mm[-1], r.orientation_deg[-1], r.movement_deg[-1], r.discarded,
-                           repeats(seen[0]), r.seconds))
-            print(json.dumps({'variant': name, 'seed': seed, 'final': finals[-1]}), file=sys.stderr)
-        f = np.array(finals)
-        rows.append({'variant': name, 'seeds': len(seeds), 'per_seed': f.tolist(),
+        f = np.array([results[name][s] for s in seeds])
+        rows.append({'variant': name, 'seeds': len(seeds), 'estimator': estimator, 'per_seed': f.tolist(),
                      'pos_mean': f[:, 0].mean(), 'pos_median': float(np.median(f[:, 0])),
+                     'pos_std': float(f[:, 0].std()),
                      'pos_p10': float(np.percentile(f[:, 0], 10)), 'pos_p90': float(np.percentile(f[:, 0], 90)),
                      'rot_mean': f[:, 1].mean(), 'rot_median': float(np.median(f[:, 1])),
                      'rot_p10': float(np.percentile(f[:, 1], 10)), 'rot_p90': float(np.percentile(f[:, 1], 90)),
@@ -203,12 +246,13 @@ def study(model: ArmModel, strategy: str, seeds: Sequence[int], iterations: int,
     return rows
 
 
-def study_table(rows: Sequence[dict[str, object]], strategy: str, iterations: int) -> str:
-    lines = [f'## {strategy.upper()}, {iterations} iterations, EKF study loop (seeds 0..{rows[0]["seeds"] - 1})', '',
-             '| variant | position mm: mean / median (p10-p90) | orientation deg: mean / median (p10-p90) | '
+def study_table(rows: Sequence[dict[str, object]], title: str, iterations: int) -> str:
+    lines = [f'## {title}, {iterations} iterations, {rows[0].get("estimator", "ekf")} estimator, study loop '
+             f'(seeds 0..{rows[0]["seeds"] - 1})', '',
+             '| variant | position mm: mean / median / std (p10-p90) | orientation deg: mean / median (p10-p90) | '
              'movement deg | discarded | repeats | s / run |', '|---|---|---|---|---|---|---|']
     for r in rows:
-        lines.append(f"| {r['variant']} | {r['pos_mean']:.2f} / {r['pos_median']:.2f} "
+        lines.append(f"| {r['variant']} | {r['pos_mean']:.2f} / {r['pos_median']:.2f} / {r.get('pos_std', 0.0):.2f} "
                      f"({r['pos_p10']:.2f}-{r['pos_p90']:.2f}) | {r['rot_mean']:.2f} / {r['rot_median']:.2f} "
                      f"({r['rot_p10']:.2f}-{r['rot_p90']:.2f}) | {r['movement']:.0f} | {r['discarded']:.1f} | "
                      f"{r['repeats']:.1f} | {r['seconds']:.0f} |")
@@ -234,6 +278,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     s.add_argument('--seeds', type=int, default=10)
     s.add_argument('--iterations', type=int, default=50)
     s.add_argument('--variants', nargs='*', default=list(VARIANTS), choices=list(VARIANTS))
+    s.add_argument('--sweep', choices=list(SWEEPS), help='a sweep of SWEEPS instead of --strategy/--variants')
+    s.add_argument('--estimator', default='map', choices=['map', 'ekf'])
+    s.add_argument('--jobs', type=int, default=1, help='worker processes')
     s.add_argument('--json', type=Path, default=None)
     args = ap.parse_args(argv)
 
@@ -250,8 +297,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         rows = compare(model, states, args.max_evals, batch)
         print(bench_table(rows, args.max_evals, batch))
     else:
-        rows = study(model, args.strategy, range(args.seeds), args.iterations, args.variants)
-        print(study_table(rows, args.strategy, args.iterations))
+        if args.sweep:
+            variants, title = SWEEPS[args.sweep], f'sweep {args.sweep}'
+        else:
+            variants = {name: dict(strategy=args.strategy, **VARIANTS[name]) for name in args.variants}
+            title = args.strategy.upper()
+        rows = study(variants, range(args.seeds), args.iterations, args.estimator, args.jobs)
+        print(study_table(rows, title, args.iterations))
     if args.json is not None:
         args.json.write_text(json.dumps(rows, indent=1))
     return 0

@@ -18,6 +18,8 @@ BENCHMARKS: dict[str, tuple[str, list[str]]] = {
     'marker_detector': ('tools.detector_bench', []),
     'dh_estimator': ('tools.map_bench', []),
     'active_selector': ('tools.loop_bench', []),
+    # Batched candidates + local refinement vs DIRECT-L 1000 on recorded selection states (~5 min).
+    'acquisition': ('tools.acquisition_bench', []),
     # 640x480 frames between processes, default Fast DDS vs the shipped shared-memory profile.
     'transport': ('tools.transport_bench', ['--profile', 'default', '--profile', 'shm']),
 }

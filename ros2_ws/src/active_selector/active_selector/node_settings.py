@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from body_schema.acquisition import DIRECT_ALGORITHMS, SelectorConfig, Strategy
+from body_schema.acquisition import DIRECT_ALGORITHMS, LOCAL_ALGORITHMS, OPTIMIZERS, SelectorConfig, Strategy
 from calibration_interfaces.noise import NoiseSettings, PoseDependentSettings
 from calibration_interfaces.parameters import setting
 
@@ -35,20 +35,32 @@ class SelectorNodeSettings:
 
 @dataclass(frozen=True)
 class StrategySettings:
-    """The selection strategy and its DIRECT search, as parameters."""
+    """The selection strategy and its search (DIRECT, or batched candidates + local refinement)."""
 
     strategy: str = setting(_SC.strategy.value, 'Selection strategy', choices=tuple(s.value for s in Strategy))
     seed: int = setting(_SC.seed, 'Seed of the random strategy and randomised DIRECT', (0, 2**31 - 1))
     gamma: float = setting(_SC.gamma, 'UCSAL weight of the normalised L1 movement', (0.0, 1e9))
     delta: float = setting(_SC.delta, 'CCSAL half-width of the box around the previous configuration '
                            '(normalised)', (1e-6, 1.0))
+    optimizer: str = setting(_SC.optimizer, "Search: 'direct' (NLopt DIRECT, the paper's) or 'batch' (Sobol "
+                             'candidates evaluated at once, then a local NLopt refinement)', choices=OPTIMIZERS)
     algorithm: str = setting(_SC.algorithm, 'NLopt DIRECT variant', choices=tuple(sorted(DIRECT_ALGORITHMS)))
-    max_evals: int = setting(_SC.max_evals, 'Cost evaluations per selection', (10, 10**7))
+    max_evals: int = setting(_SC.max_evals, 'DIRECT: cost evaluations per selection', (10, 10**7))
+    n_candidates: int = setting(_SC.n_candidates, 'batch: quasi-random candidates per selection', (1, 10**6))
+    refine_starts: int = setting(_SC.refine_starts, 'batch: best candidates refined locally', (0, 100))
+    refine_evals: int = setting(_SC.refine_evals, 'batch: evaluations of each local refinement', (0, 10**5))
+    local_algorithm: str = setting(_SC.local_algorithm, 'batch: NLopt local algorithm',
+                                   choices=tuple(sorted(LOCAL_ALGORITHMS)))
+    repeat_tolerance: float = setting(_SC.repeat_tolerance, 'Never select within this max-abs joint distance of '
+                                      'an earlier configuration [rad] (0: allow repeats)', (0.0, 1.0))
 
     def config(self) -> SelectorConfig:
         """The selector configuration these parameters describe."""
         return SelectorConfig(strategy=self.strategy, gamma=self.gamma, delta=self.delta,
-                              algorithm=self.algorithm, max_evals=self.max_evals, seed=self.seed)
+                              optimizer=self.optimizer, algorithm=self.algorithm, max_evals=self.max_evals,
+                              n_candidates=self.n_candidates, refine_starts=self.refine_starts,
+                              refine_evals=self.refine_evals, local_algorithm=self.local_algorithm,
+                              repeat_tolerance=self.repeat_tolerance, seed=self.seed)
 
 
 #: Every settings class the selector node declares, in order.

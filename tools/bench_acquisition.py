@@ -235,7 +235,8 @@ def study(variants: dict[str, dict[str, object]], seeds: Sequence[int], iteratio
     rows = []
     for name in variants:
         f = np.array([results[name][s] for s in seeds])
-        rows.append({'variant': name, 'seeds': len(seeds), 'estimator': estimator, 'per_seed': f.tolist(),
+        rows.append({'variant': name, 'seeds': len(seeds), 'first_seed': min(seeds), 'estimator': estimator,
+                     'per_seed': f.tolist(),
                      'pos_mean': f[:, 0].mean(), 'pos_median': float(np.median(f[:, 0])),
                      'pos_std': float(f[:, 0].std()),
                      'pos_p10': float(np.percentile(f[:, 0], 10)), 'pos_p90': float(np.percentile(f[:, 0], 90)),
@@ -248,7 +249,7 @@ def study(variants: dict[str, dict[str, object]], seeds: Sequence[int], iteratio
 
 def study_table(rows: Sequence[dict[str, object]], title: str, iterations: int) -> str:
     lines = [f'## {title}, {iterations} iterations, {rows[0].get("estimator", "ekf")} estimator, study loop '
-             f'(seeds 0..{rows[0]["seeds"] - 1})', '',
+             f'({rows[0]["seeds"]} seeds from {rows[0].get("first_seed", 0)})', '',
              '| variant | position mm: mean / median / std (p10-p90) | orientation deg: mean / median (p10-p90) | '
              'movement deg | discarded | repeats | s / run |', '|---|---|---|---|---|---|---|']
     for r in rows:
@@ -279,6 +280,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     s.add_argument('--iterations', type=int, default=50)
     s.add_argument('--variants', nargs='*', default=list(VARIANTS), choices=list(VARIANTS))
     s.add_argument('--sweep', choices=list(SWEEPS), help='a sweep of SWEEPS instead of --strategy/--variants')
+    s.add_argument('--first-seed', type=int, default=0, help='seeds first-seed .. first-seed + seeds - 1')
     s.add_argument('--estimator', default='map', choices=['map', 'ekf'])
     s.add_argument('--jobs', type=int, default=1, help='worker processes')
     s.add_argument('--json', type=Path, default=None)
@@ -302,7 +304,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         else:
             variants = {name: dict(strategy=args.strategy, **VARIANTS[name]) for name in args.variants}
             title = args.strategy.upper()
-        rows = study(variants, range(args.seeds), args.iterations, args.estimator, args.jobs)
+        rows = study(variants, range(args.first_seed, args.first_seed + args.seeds), args.iterations,
+                     args.estimator, args.jobs)
         print(study_table(rows, title, args.iterations))
     if args.json is not None:
         args.json.write_text(json.dumps(rows, indent=1))

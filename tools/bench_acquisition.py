@@ -191,6 +191,15 @@ SWEEPS: dict[str, dict[str, dict[str, object]]] = {
               for mode in ('paper', 'gain') for g in (0.002, 0.005, 0.01, 0.02)},
     'ccsal': {f'CCSAL delta {d:g}, {mode}': dict(strategy='ccsal', delta=d, occlusion_mode=mode, **_V)
               for mode in ('paper', 'gain') for d in (0.1, 0.2, 0.3, 0.5)},
+    # The defaults chosen from the sweeps above, for the final table on held-out seeds.
+    'final': {
+        'R': dict(strategy='random'),
+        'AL': dict(strategy='al'),
+        'UCSAL': dict(strategy='ucsal'),
+        'CCSAL': dict(strategy='ccsal'),
+        "AL with the paper's selector (C0/eta, a-optimal, DIRECT-L 1000)": dict(
+            strategy='al', occlusion_mode='paper', criterion='a_optimal', optimizer='direct', repeat_tolerance=0.0),
+    },
 }
 
 _SELECTOR_KEYS = ('strategy', 'optimizer', 'repeat_tolerance', 'gamma', 'delta')

@@ -28,7 +28,10 @@ __all__ = ['PlannerSettings', 'Attempt', 'Planner']
 class PlannerSettings:
     """Everything a strategy needs beyond the estimate (see body_schema.acquisition).
 
-    Defaults chosen by measurement with ``tools/selector_study.py`` (README, active_selector).
+    Defaults chosen by measurement with the MAP estimator, 20 seeds x 50 iterations
+    (``python -m tools.bench_acquisition study --sweep al|ucsal|ccsal``; README, active_selector):
+    v-optimality with the occlusion-discounted gain; the paper's C0 / eta with a-optimality
+    (``occlusion_mode='paper', criterion='a_optimal'``) is the baseline.
     Every field but ``selector`` is a node parameter (:mod:`active_selector.node_settings`).
     """
 
@@ -39,9 +42,9 @@ class PlannerSettings:
     occlusion_length_scale: float = setting(0.5, 'Occlusion kernel length scale (normalised joints)', (1e-4, 10.0))
     occlusion_a0: float = setting(1.0, 'Beta prior successes', (1e-6, 1e6))
     occlusion_b0: float = setting(2.0, 'Beta prior failures', (1e-6, 1e6))
-    occlusion_mode: str = setting('paper', "Failure handling in the cost: 'paper' (C0 / eta), 'expected' "
+    occlusion_mode: str = setting('gain', "Failure handling in the cost: 'paper' (C0 / eta), 'expected' "
                                   "(tr(P) - eta g) or 'gain' (-eta g / tr(P))", choices=OCCLUSION_MODES)
-    criterion: str = setting('a_optimal', "Uncertainty the selection reduces: 'a_optimal' (tr P) or "
+    criterion: str = setting('v_optimal', "Uncertainty the selection reduces: 'a_optimal' (tr P) or "
                              "'v_optimal' (hand-pose variance over the calibration box)", choices=CRITERIA)
     box_samples: int = setting(128, 'Configurations (Sobol, fixed) v-optimality averages over; a power of two',
                                (1, 65536))

@@ -347,9 +347,9 @@ class SelectorConfig:
     """
 
     strategy: Strategy = Strategy.AL
-    gamma: float = 0.005
+    gamma: float = 0.01
     delta: float = 0.2
-    optimizer: str = 'direct'
+    optimizer: str = 'batch'
     algorithm: str = 'DIRECT_L'
     max_evals: int = 1000
     n_candidates: int = 512

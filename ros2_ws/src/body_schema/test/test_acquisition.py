@@ -286,7 +286,8 @@ def test_batch_optimizer_record_bounds_and_quality(arm, box_configs, learned_occ
     assert s.cost == pytest.approx(float(sel.objective(cost, s.theta[None], prev)[0]), rel=1e-12)
     again = JointSelector(arm.calibration_box, cfg).select(cost, prev)
     np.testing.assert_array_equal(s.theta, again.theta)         # seeded: reproducible
-    d = JointSelector(arm.calibration_box, SelectorConfig(strategy=strategy, max_evals=100)).select(cost, prev)
+    d = JointSelector(arm.calibration_box, SelectorConfig(strategy=strategy, optimizer='direct',
+                                                          max_evals=100)).select(cost, prev)
     assert d.optimizer == 'direct:DIRECT_L' and d.evaluations >= 100
 
 

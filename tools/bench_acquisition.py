@@ -191,6 +191,9 @@ SWEEPS: dict[str, dict[str, dict[str, object]]] = {
               for mode in ('paper', 'gain') for g in (0.002, 0.005, 0.01, 0.02)},
     'ccsal': {f'CCSAL delta {d:g}, {mode}': dict(strategy='ccsal', delta=d, occlusion_mode=mode, **_V)
               for mode in ('paper', 'gain') for d in (0.1, 0.2, 0.3, 0.5)},
+    # UCSAL's gamma between the two that bracket the targets (run on seeds 0-19 and 100-119).
+    'ucsal_gamma': {f'UCSAL gamma {g:g}, gain': dict(strategy='ucsal', gamma=g, occlusion_mode='gain', **_V)
+                    for g in (0.005, 0.007)},
     # The defaults chosen from the sweeps above, for the final table on held-out seeds.
     'final': {
         'R': dict(strategy='random'),

@@ -101,8 +101,8 @@ def compare(model: ArmModel, states: Sequence[State], max_evals: int,
                 cpu: dict[str, list[float]] = {'direct': [], 'batch': []}
                 evals: dict[str, list[int]] = {'direct': [], 'batch': []}
                 for st in sub:
-                    for name, cfg in (('direct', SelectorConfig(strategy=strategy, max_evals=max_evals,
-                                                                seed=st.seed)),
+                    for name, cfg in (('direct', SelectorConfig(strategy=strategy, optimizer='direct',
+                                                                max_evals=max_evals, seed=st.seed)),
                                       ('batch', replace(batch, strategy=strategy, seed=st.seed))):
                         planner = replay(model, st, PlannerSettings(cfg, occlusion_mode=occ, criterion=crit))
                         t0, c0 = time.perf_counter(), time.process_time()

@@ -38,9 +38,7 @@ def run(iterations: int = 8) -> dict[str, float]:
             wall0 = time.perf_counter()
             graph.spin_until(lambda: len(progress) >= iterations, 600.0, f'{iterations} AL iterations')
             wall = time.perf_counter() - wall0
-            sel = graph.selector.planner.settings.selector
-            search = (f'DIRECT-L, {sel.max_evals} evaluations' if sel.optimizer == 'direct' else
-                      f'batch: {sel.n_candidates} candidates + {sel.local_algorithm} {sel.refine_evals}')
+            search = graph.selector.planner.settings.selector.search
             est = graph.estimator.estimator.settings
             update = (f'MAP update ({est.loss} loss)' if est.estimator == 'map' else
                       f'EKF update ({est.iterations} linearisations)')

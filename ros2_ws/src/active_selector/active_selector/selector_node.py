@@ -114,7 +114,8 @@ class SelectorNode(Node):
         self.create_timer(0.05, self.step, clock=Clock(clock_type=ClockType.STEADY_TIME))
         config = strategy.config()
         self.get_logger().info(f'{config.strategy.value} run of {self.iterations} iterations '
-                               f'(DIRECT {config.algorithm}, {config.max_evals} evaluations)')
+                               f'({config.search}; {self.planner.settings.criterion}, occlusion '
+                               f'{self.planner.settings.occlusion_mode})')
 
     # ---------------------------------------------------------------------------------- inputs
 

@@ -359,6 +359,13 @@ class SelectorConfig:
     repeat_tolerance: float = 2e-3
     seed: int = 0
 
+    @property
+    def search(self) -> str:
+        """What searches the cost, in words (for logs and benchmark tables)."""
+        if self.optimizer == 'direct':
+            return f'{self.algorithm}, {self.max_evals} evaluations'
+        return f'batch: {self.n_candidates} candidates + {self.local_algorithm} {self.refine_evals}'
+
     def __post_init__(self) -> None:
         object.__setattr__(self, 'strategy', Strategy.parse(str(getattr(self.strategy, 'value', self.strategy))))
         if self.optimizer not in OPTIMIZERS:

@@ -30,6 +30,8 @@ from body_schema.metrics import PoseErrorEvaluator
 from body_schema.noise import PoseDependentNoise
 from body_schema.synthetic import SyntheticRun
 
+from .estimator_study import summarise
+
 #: Forgetting settings compared by ``adaptation`` (name -> MapSettings overrides).
 FORGETTING = {
     'none': {'change_probability': 0.0},
@@ -62,8 +64,9 @@ def changed_table(table: np.ndarray) -> np.ndarray:
 
 
 def summary(a: list[float]) -> str:
-    v = np.asarray(a, dtype=float)
-    return f'{v.mean():.2f} / {np.median(v):.2f} / {v.std():.2f}'
+    """``mean / median / std`` of ``a``, two decimals."""
+    s = summarise(a)
+    return f"{s['mean']:.2f} / {s['median']:.2f} / {s['std']:.2f}"
 
 
 def consistency(model, seeds: int, n_obs: int) -> tuple[dict, str]:

@@ -166,3 +166,16 @@ def test_information_limit_predicts_the_achieved_error(arm):
     # A covariance four times larger implies twice the error.
     doubled = expected_pose_errors(arm.base, est.x, 4 * est.P, arm.calibration_box, n=300).position_mm
     assert doubled == pytest.approx(2 * expected[-1], rel=0.05)
+
+
+def test_innovation_is_what_the_update_reports_and_changes_nothing(arm):
+    _, obs, est, _ = _run(arm, 8, 12)
+    extra = SyntheticRun(arm, _true(arm, 8), PoseDependentNoise(), 81)(1)[0]
+    before = est.state_dict()
+    y, S = est.innovation(extra.q, extra.pose, extra.R)  # noqa: N806
+    for k, v in est.state_dict().items():
+        np.testing.assert_array_equal(v, before[k])
+    u = est.update(extra.q, extra.pose, extra.R)
+    np.testing.assert_allclose(u.innovation, y)
+    np.testing.assert_allclose(u.S, S)
+    assert u.nis == pytest.approx(float(y @ np.linalg.solve(S, y)))

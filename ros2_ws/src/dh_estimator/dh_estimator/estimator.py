@@ -174,11 +174,6 @@ class OnlineEstimator:
         return self.ekf.mahalanobis
 
     @property
-    def nis(self) -> float:
-        """Normalised innovation squared of the last offered observation."""
-        return self.mahalanobis ** 2
-
-    @property
     def counters(self) -> dict[str, int]:
         if self.map is not None:
             return {'updates': self.map.n_updates, 'rejected': 0, 'duplicates': self.n_duplicates,

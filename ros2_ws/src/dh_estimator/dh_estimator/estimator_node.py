@@ -110,7 +110,8 @@ class EstimatorNode(Node):
         self.create_service(Trigger, '~/export', self.on_export)
         self.publish_estimate()
         self.get_logger().info(f'estimating {self.model.n_params} DH parameters of {self.model.name} '
-                               f'(initial guess: {s.initial_guess}, noise: {self.noise.noise_model})')
+                               f'with the {settings.estimator.upper()} estimator (initial guess: '
+                               f'{s.initial_guess}, noise: {self.noise.noise_model})')
 
     def _initial_guess(self, s: EstimatorNodeSettings) -> np.ndarray:
         if s.initial_guess == 'nominal':

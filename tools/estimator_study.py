@@ -17,20 +17,19 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 from scipy.stats import chi2
 
 from active_selector.planner import PlannerSettings
-from tools.selector_study import run_episode
+from body_schema.acquisition import SelectorConfig
+from tools.selector_study import initial_guess, run_seed, true_table
 from body_schema import load_robot, sampling
 from body_schema.ekf import nees
 from body_schema.map_estimator import MapEstimator, MapSettings
 from body_schema.metrics import PoseErrorEvaluator
 from body_schema.noise import PoseDependentNoise
-from dh_estimator.estimator import EstimatorSettings
 
 
 def batch_solution(model, x0: np.ndarray, observations: list) -> np.ndarray:
@@ -101,23 +100,16 @@ def main(argv: list[str] | None = None) -> int:
         print(text)
         return 0
 
-    from icub_sim_bridge.world import SimWorld
-
     model = load_robot()
     noise = PoseDependentNoise()
     args.output.mkdir(parents=True, exist_ok=True)
     runs = []
     for seed in range(args.first_seed, args.first_seed + args.seeds):
-        true_dh = sampling.perturb_dh(model.dh, 1000 + seed, 0.004, np.radians(2.0))
-        x0 = sampling.perturb_dh(model.dh, seed)
+        true_dh, x0 = true_table(model, seed), initial_guess(model, seed)
         evaluator = PoseErrorEvaluator(model.base, true_dh, model.calibration_box)
         for kind in args.estimators.split(','):
-            settings = PlannerSettings()
-            settings = PlannerSettings(selector=type(settings.selector)(strategy=args.strategy, seed=seed))
-            with SimWorld(model, true_dh, head_pose=model.eyes.head_pose) as world:
-                r = run_episode(model, world, x0, settings, noise, args.iterations,
-                                model.calibration_box.mean(axis=1), evaluator,
-                                EstimatorSettings(estimator=kind, iterations=args.ekf_iterations))
+            settings = PlannerSettings(selector=SelectorConfig(strategy=args.strategy))
+            r = run_seed(model, noise, settings, seed, args.iterations, args.ekf_iterations, estimator=kind)
             est = r.estimator
             if r.observations:
                 qs, zs, rs = (np.array(a) for a in zip(*r.observations))
@@ -125,7 +117,6 @@ def main(argv: list[str] | None = None) -> int:
                          true_dh=true_dh, x0=x0)
             xb = batch_solution(model, x0, r.observations)
             eb = evaluator(xb)
-            # NIS of the innovations once the estimate has settled (after 10 updates).
             row = {'seed': seed, 'estimator': kind, 'position_mm': r.position_mm[-1],
                    'orientation_deg': r.orientation_deg[-1], 'batch_position_mm': eb.position_mm,
                    'batch_orientation_deg': eb.orientation_deg, 'updates': len(r.observations),

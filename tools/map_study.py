@@ -31,6 +31,7 @@ from body_schema.noise import PoseDependentNoise
 from body_schema.synthetic import SyntheticRun
 
 from .estimator_study import summarise
+from .selector_study import initial_guess, true_table
 
 #: Forgetting settings compared by ``adaptation`` (name -> MapSettings overrides).
 FORGETTING = {
@@ -48,11 +49,6 @@ FORGETTING = {
     'default, jump 30 mm / 10 deg': {'jump_length': 0.03, 'jump_angle': float(np.radians(10.0))},
     'default + random walk 0.1 mm / 0.03 deg': {'q_length': 1e-8, 'q_angle': float(np.radians(0.03)) ** 2},
 }
-
-
-def true_table(model, seed: int) -> np.ndarray:
-    """The real robot of run ``seed``: nominal perturbed by 4 mm / 2 deg (as the experiment)."""
-    return sampling.perturb_dh(model.dh, 1000 + seed, 0.004, np.radians(2.0))
 
 
 def changed_table(table: np.ndarray) -> np.ndarray:
@@ -75,7 +71,7 @@ def consistency(model, seeds: int, n_obs: int) -> tuple[dict, str]:
     for seed in range(seeds):
         true = true_table(model, seed)
         obs = SyntheticRun(model, true, noise, seed)(n_obs)
-        x0, p0 = sampling.perturb_dh(model.dh, seed), sampling.initial_covariance(model.n_joints)
+        x0, p0 = initial_guess(model, seed), sampling.initial_covariance(model.n_joints)
         est = MapEstimator(model.base, x0, p0, limits=model.limits)
         f = ekf.ExtendedKalmanFilter(x0.ravel(), p0)
         hand = ekf.HandPoseModel(model.base, model.n_joints)
@@ -121,7 +117,7 @@ def adaptation(model, seeds: int, change_at: int, n_after: int) -> tuple[dict, s
         for seed in range(seeds):
             true = true_table(model, seed)
             new = changed_table(true)
-            x0, p0 = sampling.perturb_dh(model.dh, seed), sampling.initial_covariance(model.n_joints)
+            x0, p0 = initial_guess(model, seed), sampling.initial_covariance(model.n_joints)
             ev_old = PoseErrorEvaluator(model.base, true, model.calibration_box, n=300)
             ev_new = PoseErrorEvaluator(model.base, new, model.calibration_box, n=300)
             # A body that changes ...

@@ -110,6 +110,16 @@ def run_episode(model: ArmModel, world: object, x0: np.ndarray,
     return EpisodeResult(pos, rot, mov, planner.discarded, time.perf_counter() - t0, used, est)
 
 
+def true_table(model: ArmModel, seed: int) -> np.ndarray:
+    """The real robot of run ``seed``: the nominal table perturbed by 4 mm / 2 deg (seed ``1000 + seed``)."""
+    return sampling.perturb_dh(model.dh, 1000 + seed, 0.004, np.radians(2.0))
+
+
+def initial_guess(model: ArmModel, seed: int) -> np.ndarray:
+    """The initial guess of run ``seed``: a draw with the paper's widths around the nominal table."""
+    return sampling.perturb_dh(model.dh, seed)
+
+
 def run_seed(model: ArmModel, noise: NoiseModel, settings: PlannerSettings, seed: int, iterations: int,
              ekf_iterations: int = 5,
              on_select: Callable[[Planner, np.ndarray, np.ndarray], None] | None = None,
@@ -118,8 +128,8 @@ def run_seed(model: ArmModel, noise: NoiseModel, settings: PlannerSettings, seed
     guess with the paper's widths (``seed``), the selector seeded with ``seed``, start at the box centre."""
     from icub_sim_bridge.world import SimWorld
 
-    true_dh = sampling.perturb_dh(model.dh, 1000 + seed, 0.004, np.radians(2.0))
-    x0 = sampling.perturb_dh(model.dh, seed)
+    true_dh = true_table(model, seed)
+    x0 = initial_guess(model, seed)
     evaluator = PoseErrorEvaluator(model.base, true_dh, model.calibration_box)
     with SimWorld(model, true_dh, head_pose=model.eyes.head_pose) as world:
         s = replace(settings, selector=replace(settings.selector, seed=seed))

@@ -461,7 +461,7 @@ class MapEstimator:
         # robust (IRLS) weight. scipy's robust-scaled Jacobian would also shrink the weight of
         # 1-2 sigma residuals and so overstate the uncertainty.
         jr = jac(res.x)
-        r = fun(res.x)[self.n:].reshape(-1, 6)
+        r = res.fun[self.n:].reshape(-1, 6)          # unscaled residuals at the solution
         weights = np.ones_like(r)
         outlier = np.einsum('ni,ni->n', r, r) > self._outlier_bound
         weights[outlier] = _IRLS_WEIGHT[loss]((r[outlier] / s.loss_scale) ** 2)

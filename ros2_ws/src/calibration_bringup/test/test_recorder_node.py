@@ -19,6 +19,7 @@ from std_msgs.msg import Float64MultiArray, String
 
 from calibration_interfaces import mcap_reader as bag
 from calibration_bringup.recorder_node import RecorderNode
+from calibration_interfaces.node_util import qos_profile
 
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 N = 20
@@ -221,7 +222,7 @@ def test_contract_topics_are_recorded_before_discovery_notices_their_publisher(r
     path = tmp_path / 'early.mcap'
     rec = _recorder(ros, path, discovery_period=60.0)       # discovery never runs after start
     probe = ros.node('probe')
-    cmd = probe.create_publisher(String, '/calibration/progress', 10)
+    cmd = probe.create_publisher(String, '/calibration/progress', qos_profile('/calibration/progress'))  # as the selector
     best_effort_js = probe.create_publisher(JointState, '/joint_states', qos_profile_sensor_data)
     ros.spin_until(lambda: cmd.get_subscription_count() == 1, 10.0, 'the early subscription matching')
     cmd.publish(String(data='first'))

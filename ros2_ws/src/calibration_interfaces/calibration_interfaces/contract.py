@@ -10,7 +10,7 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass
 
-__all__ = ['Reliability', 'Durability', 'QosSpec', 'SENSOR', 'RELIABLE', 'LATCHED', 'ContractTopic',
+__all__ = ['Reliability', 'Durability', 'QosSpec', 'SENSOR', 'RELIABLE', 'LATCHED', 'HISTORY', 'ContractTopic',
            'CONTRACT', 'BY_NAME', 'IMAGE_TOPICS', 'topic']
 
 
@@ -56,6 +56,11 @@ SENSOR = QosSpec(Reliability.BEST_EFFORT, Durability.VOLATILE, 5)
 RELIABLE = QosSpec(Reliability.RELIABLE, Durability.VOLATILE, 10)
 #: Latched facts (the true table, camera poses, the current target): the last one survives.
 LATCHED = QosSpec(Reliability.RELIABLE, Durability.TRANSIENT_LOCAL, 1)
+#: Records of a run (the estimator's verdicts, the selector's iterations): a subscriber that
+#: matches the publisher late (discovery between processes can take seconds on a loaded machine)
+#: still receives the last 100. A volatile stream lost the first verdict that way: the selector
+#: timed out on an observation the estimator had used.
+HISTORY = QosSpec(Reliability.RELIABLE, Durability.TRANSIENT_LOCAL, 100)
 
 
 @dataclass(frozen=True)
@@ -107,8 +112,8 @@ CONTRACT: tuple[ContractTopic, ...] = (
     ContractTopic('/body_schema/true', 'std_msgs/msg/Float64MultiArray', LATCHED),
     # The estimator's per-attempt outcome (keys: calibration_interfaces.outcome.StatusKey) and
     # the selector's per-iteration record (JSON), which the offline evaluation aligns on.
-    ContractTopic('/body_schema/update_status', 'diagnostic_msgs/msg/DiagnosticStatus'),
-    ContractTopic('/calibration/progress', 'std_msgs/msg/String'),
+    ContractTopic('/body_schema/update_status', 'diagnostic_msgs/msg/DiagnosticStatus', HISTORY),
+    ContractTopic('/calibration/progress', 'std_msgs/msg/String', HISTORY),
 )
 
 BY_NAME: dict[str, ContractTopic] = {t.name: t for t in CONTRACT}

@@ -161,20 +161,26 @@ def repeats(planner: Planner) -> int:
     return n
 
 
-#: Selector variants of the study; 'old' is main's selector (no repeat exclusion). Each maps to
+#: Selector variants of the study; 'old' is main's selector (no repeat exclusion). The sweeps of
+#: the first selection round ('al', 'ucsal', 'ccsal', 'ucsal_gamma') pin the flat occlusion prior they
+#: were measured with, so their README tables stay reproducible after the default changed. Each maps to
 #: overrides of PlannerSettings (strategy, occlusion_mode, criterion, penalty_a, occlusion_a0 / b0)
 #: and SelectorConfig (optimizer, repeat_tolerance, gamma, delta).
 VARIANTS = {
     'old: paper, DIRECT, a_optimal': dict(occlusion_mode='paper', optimizer='direct', criterion='a_optimal',
-                                          repeat_tolerance=0.0),
-    'new: gain, batch, a_optimal': dict(occlusion_mode='gain', optimizer='batch', criterion='a_optimal'),
-    'new: gain, batch, v_optimal': dict(occlusion_mode='gain', optimizer='batch', criterion='v_optimal'),
+                                          repeat_tolerance=0.0, occlusion_prior='flat'),
+    'new: gain, batch, a_optimal': dict(occlusion_mode='gain', optimizer='batch', criterion='a_optimal',
+                                        occlusion_prior='flat'),
+    'new: gain, batch, v_optimal': dict(occlusion_mode='gain', optimizer='batch', criterion='v_optimal',
+                                        occlusion_prior='flat'),
     # which change does what: the paper's objective with the new optimiser and no-repeat rule
-    'paper, batch, a_optimal': dict(occlusion_mode='paper', optimizer='batch', criterion='a_optimal'),
-    'paper, batch, v_optimal': dict(occlusion_mode='paper', optimizer='batch', criterion='v_optimal'),
+    'paper, batch, a_optimal': dict(occlusion_mode='paper', optimizer='batch', criterion='a_optimal',
+                                    occlusion_prior='flat'),
+    'paper, batch, v_optimal': dict(occlusion_mode='paper', optimizer='batch', criterion='v_optimal',
+                                    occlusion_prior='flat'),
 }
 
-_V = dict(optimizer='batch', criterion='v_optimal')
+_V = dict(optimizer='batch', criterion='v_optimal', occlusion_prior='flat')
 #: Sweeps of issue 14 item 5, with the MAP estimator (``study --sweep NAME``).
 SWEEPS: dict[str, dict[str, dict[str, object]]] = {
     'al': {
@@ -194,6 +200,17 @@ SWEEPS: dict[str, dict[str, dict[str, object]]] = {
     # UCSAL's gamma between the two that bracket the targets (run on seeds 0-19 and 100-119).
     'ucsal_gamma': {f'UCSAL gamma {g:g}, gain': dict(strategy='ucsal', gamma=g, occlusion_mode='gain', **_V)
                     for g in (0.005, 0.007)},
+    # The geometric visibility prior (occlusion_prior='geometric') against the flat one; its strength
+    # is a0 + b0 (3 by default).
+    'visibility': {
+        'R': dict(strategy='random'),
+        **{f'{s.upper()}, {prior}': dict(strategy=s, occlusion_prior=prior)
+           for s in ('al', 'ccsal') for prior in ('flat', 'geometric')},
+        'AL, geometric, strength 6': dict(strategy='al', occlusion_prior='geometric', occlusion_a0=2.0,
+                                          occlusion_b0=4.0),
+        **{f'UCSAL gamma {g:g}, {prior}': dict(strategy='ucsal', gamma=g, occlusion_prior=prior)
+           for g, prior in ((0.01, 'flat'), (0.005, 'geometric'), (0.01, 'geometric'), (0.02, 'geometric'))},
+    },
     # The defaults chosen from the sweeps above, for the final table on held-out seeds.
     'final': {
         'R': dict(strategy='random'),
@@ -201,7 +218,8 @@ SWEEPS: dict[str, dict[str, dict[str, object]]] = {
         'UCSAL': dict(strategy='ucsal'),
         'CCSAL': dict(strategy='ccsal'),
         "AL with the paper's selector (C0/eta, a-optimal, DIRECT-L 1000)": dict(
-            strategy='al', occlusion_mode='paper', criterion='a_optimal', optimizer='direct', repeat_tolerance=0.0),
+            strategy='al', occlusion_mode='paper', criterion='a_optimal', optimizer='direct', repeat_tolerance=0.0,
+            occlusion_prior='flat'),
     },
 }
 

@@ -27,7 +27,7 @@ from calibration_interfaces.outcome import Outcome
 from dh_estimator.estimator import EstimatorSettings, OnlineEstimator
 
 from active_selector.loop import CalibrationLoop, LoopSettings
-from active_selector.planner import Planner, PlannerSettings
+from active_selector.planner import OCCLUSION_PRIORS, Planner, PlannerSettings
 
 __all__ = ['EpisodeResult', 'run_episode', 'run_seed', 'main']
 
@@ -149,6 +149,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument('--length-scale', type=float, default=_DEF.occlusion_length_scale)
     ap.add_argument('--a0', type=float, default=_DEF.occlusion_a0)
     ap.add_argument('--b0', type=float, default=_DEF.occlusion_b0)
+    ap.add_argument('--occlusion-prior', default=_DEF.occlusion_prior, choices=OCCLUSION_PRIORS)
     ap.add_argument('--occlusion-mode', default=_DEF.occlusion_mode, choices=OCCLUSION_MODES)
     ap.add_argument('--criterion', default=_DEF.criterion, choices=CRITERIA)
     ap.add_argument('--optimizer', default=_DEF.selector.optimizer, choices=OPTIMIZERS)
@@ -169,6 +170,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                                penalty_a=args.penalty_a, penalty_b=args.penalty_b,
                                occlusion_length_scale=args.length_scale, occlusion_a0=args.a0,
                                occlusion_b0=args.b0, occlusion_mode=args.occlusion_mode,
+                               occlusion_prior=args.occlusion_prior,
                                criterion=args.criterion)
     results = [run_seed(model, noise, settings, seed, args.iterations, args.ekf_iterations, estimator=args.estimator)
                for seed in range(args.seeds)]

@@ -17,11 +17,14 @@ from body_schema import ArmModel
 from body_schema.acquisition import (CRITERIA, OCCLUSION_MODES, AcquisitionCost, JointSelector, Selection,
                                      SelectorConfig, Strategy)
 from body_schema.noise import NoiseModel
-from body_schema.occlusion import OcclusionModel
+from body_schema.occlusion import OcclusionModel, VisibilityPrior
 from calibration_interfaces.outcome import Outcome
 from calibration_interfaces.parameters import setting
 
-__all__ = ['PlannerSettings', 'Attempt', 'Planner']
+__all__ = ['OCCLUSION_PRIORS', 'PlannerSettings', 'Attempt', 'Planner']
+
+#: Prior of the occlusion model: the paper's flat Be(a0, b0), or geometric visibility from the estimate.
+OCCLUSION_PRIORS = ('flat', 'geometric')
 
 
 @dataclass(frozen=True)
@@ -30,8 +33,9 @@ class PlannerSettings:
 
     Defaults chosen by measurement with the MAP estimator, 20 seeds x 50 iterations
     (``python -m tools.bench_acquisition study --sweep al|ucsal|ccsal``; README, active_selector):
-    v-optimality with the occlusion-discounted gain; the paper's C0 / eta with a-optimality
-    (``occlusion_mode='paper', criterion='a_optimal'``) is the baseline.
+    v-optimality with the occlusion-discounted gain and the geometric visibility prior
+    (``--sweep visibility``); the paper's C0 / eta with a-optimality and the flat prior
+    (``occlusion_mode='paper', criterion='a_optimal', occlusion_prior='flat'``) is the baseline.
     Every field but ``selector`` is a node parameter (:mod:`active_selector.node_settings`).
     """
 
@@ -42,6 +46,9 @@ class PlannerSettings:
     occlusion_length_scale: float = setting(0.5, 'Occlusion kernel length scale (normalised joints)', (1e-4, 10.0))
     occlusion_a0: float = setting(1.0, 'Beta prior successes', (1e-6, 1e6))
     occlusion_b0: float = setting(2.0, 'Beta prior failures', (1e-6, 1e6))
+    occlusion_prior: str = setting('geometric', "Occlusion model prior: 'flat' (Be(a0, b0), the paper's) or "
+                                   "'geometric' (mean from the estimate: marker facing the camera inside "
+                                   "the image; strength a0 + b0)", choices=OCCLUSION_PRIORS)
     occlusion_mode: str = setting('gain', "Failure handling in the cost: 'paper' (C0 / eta), 'expected' "
                                   "(tr(P) - eta g) or 'gain' (-eta g / tr(P))", choices=OCCLUSION_MODES)
     criterion: str = setting('v_optimal', "Uncertainty the selection reduces: 'a_optimal' (tr P) or "
@@ -50,6 +57,8 @@ class PlannerSettings:
                                (1, 65536))
 
     def __post_init__(self) -> None:
+        if self.occlusion_prior not in OCCLUSION_PRIORS:
+            raise ValueError(f'occlusion_prior must be one of {OCCLUSION_PRIORS}, got {self.occlusion_prior!r}')
         n = self.box_samples
         if n < 1 or n & (n - 1):
             raise ValueError(f'box_samples must be a power of two >= 1 (Sobol balance), got {n}')
@@ -92,6 +101,11 @@ class Planner:
         self.selector = JointSelector(box, self.settings.selector)
         self.occlusion = OcclusionModel(box, self.settings.occlusion_length_scale,
                                         self.settings.occlusion_a0, self.settings.occlusion_b0)
+        self.visibility = None
+        if self.settings.occlusion_prior == 'geometric':
+            if self.model.camera is None:
+                raise ValueError("occlusion_prior 'geometric' needs the robot description's camera intrinsics")
+            self.visibility = VisibilityPrior(self.model.camera)
         self.start: NDArray[np.float64] | None = None
         self.movement_deg = 0.0
         # Fixed (seed 0) so the criterion is the same function in every run and iteration.
@@ -118,13 +132,28 @@ class Planner:
         return sum(not a.detected for a in self.history)
 
     def cost(self, dh: ArrayLike, P: ArrayLike, camera_pose: ArrayLike) -> AcquisitionCost:  # noqa: N803
-        """The acquisition cost for the current estimate."""
+        """The acquisition cost for the current estimate.
+
+        With the geometric occlusion prior, its weight is the evidence that the current estimate's
+        visibility predictions explain the attempts so far (a badly wrong estimate predicts the hand
+        where it is not seen, and the flat prior takes over until the estimate improves).
+        """
         s = self.settings
-        return AcquisitionCost(self.model.base, np.asarray(dh, dtype=float).reshape(self.model.dh.shape),
+        cost = AcquisitionCost(self.model.base, np.asarray(dh, dtype=float).reshape(self.model.dh.shape),
                                np.asarray(P, dtype=float), self.noise, np.asarray(camera_pose, dtype=float),
-                               self.model.markers, occlusion=self.occlusion, penalty_a=s.penalty_a,
-                               penalty_b=s.penalty_b, occlusion_mode=s.occlusion_mode, criterion=s.criterion,
-                               box_configs=self.box_configs)
+                               self.model.markers, occlusion=self.occlusion, visibility=self.visibility,
+                               penalty_a=s.penalty_a, penalty_b=s.penalty_b, occlusion_mode=s.occlusion_mode,
+                               criterion=s.criterion, box_configs=self.box_configs)
+        if self.visibility is not None:
+            tried = [a for a in self.history if a.outcome is not Outcome.UNREACHABLE]
+            if tried:
+                box = self.model.calibration_box
+                q = np.clip([a.reached for a in tried], box[:, 0], box[:, 1])   # as the occlusion model has them
+                cost.visibility_weight = self.occlusion.geometric_evidence(
+                    q, [a.detected for a in tried], cost.visibility_probability(q))
+            else:
+                cost.visibility_weight = 0.5
+        return cost
 
     def select(self, dh: ArrayLike | None, P: ArrayLike | None,  # noqa: N803
                camera_pose: ArrayLike | None) -> Selection:

@@ -28,8 +28,10 @@ Parameters
 Declared from the settings dataclasses of :mod:`active_selector.node_settings` (one default, one
 description and one range each): robot, eye, progress_file, wait_report_period
 (SelectorNodeSettings); strategy ('random' | 'al' | 'ucsal' | 'ccsal'), seed, gamma, delta,
-algorithm, max_evals (StrategySettings); penalty_a, penalty_b, occlusion_length_scale,
-occlusion_a0, occlusion_b0, occlusion_mode ('paper' | 'expected') (PlannerSettings);
+optimizer, algorithm, max_evals, n_candidates, refine_starts, refine_evals, local_algorithm,
+repeat_tolerance (StrategySettings); penalty_a, penalty_b, occlusion_length_scale,
+occlusion_a0, occlusion_b0, occlusion_prior ('flat' | 'geometric'), occlusion_mode ('paper' |
+'expected' | 'gain'), criterion ('a_optimal' | 'v_optimal'), box_samples (PlannerSettings);
 iterations, settle_tolerance (rad), settle_timeout (s, sim), settle_time (s, sim),
 outcome_timeout (s, sim) (LoopSettings); noise_model ('pose_dependent' | 'constant'),
 cn_sigma_pos, cn_sigma_rot_deg, pdn_a_pos, pdn_b_pos, pdn_a_rot, pdn_b_rot (NoiseSettings,

@@ -31,7 +31,8 @@ def test_select_and_record(strategy):
 @pytest.mark.parametrize('criterion', ['a_optimal', 'v_optimal'])
 def test_planner_never_revisits_and_passes_the_new_modes(criterion):
     settings = PlannerSettings(SelectorConfig(strategy='al', optimizer='batch', n_candidates=256, seed=4),
-                               occlusion_mode='gain', criterion=criterion, box_samples=32)
+                               occlusion_mode='gain', criterion=criterion, box_samples=32,
+                               occlusion_prior='flat')   # the geometric prior's weight learns from history
     pl = Planner(ARM, PoseDependentNoise(), settings)
     pl.start = np.mean(ARM.calibration_box, axis=1)
     P = sampling.initial_covariance(7)
@@ -55,3 +56,35 @@ def test_planner_never_revisits_and_passes_the_new_modes(criterion):
 def test_box_samples_must_be_a_power_of_two():
     with pytest.raises(ValueError, match='box_samples.*100'):
         PlannerSettings(box_samples=100)
+
+
+def test_occlusion_prior_setting_reaches_the_cost():
+    geo = Planner(ARM, PoseDependentNoise(), PlannerSettings(occlusion_prior='geometric'))
+    flat = Planner(ARM, PoseDependentNoise(), PlannerSettings(occlusion_prior='flat'))
+    P = sampling.initial_covariance(7)
+    assert geo.cost(ARM.dh, P, ARM.camera_pose()).visibility.camera == ARM.camera
+    assert flat.cost(ARM.dh, P, ARM.camera_pose()).visibility is None
+    q = sampling.uniform_configs(ARM.calibration_box, 32, 3)
+    eta_flat = flat.cost(ARM.dh, P, ARM.camera_pose()).terms_batch(q)[1]
+    np.testing.assert_allclose(eta_flat, 1.0 / 3.0)            # Be(1, 2) without data
+    assert np.ptp(geo.cost(ARM.dh, P, ARM.camera_pose()).terms_batch(q)[1]) > 0.1
+    with pytest.raises(ValueError, match="occlusion_prior must be one of .* got 'sharp'"):
+        PlannerSettings(occlusion_prior='sharp')
+
+
+def test_geometric_prior_loses_weight_when_its_predictions_fail():
+    pl = Planner(ARM, PoseDependentNoise(), PlannerSettings(occlusion_prior='geometric'))
+    pl.start = np.mean(ARM.calibration_box, axis=1)
+    P = sampling.initial_covariance(7) * 1e-4                   # a confident estimate
+    assert pl.cost(ARM.dh, P, ARM.camera_pose()).visibility_weight == 0.5
+    q = sampling.uniform_configs(ARM.calibration_box, 64, 2)
+    p = pl.cost(ARM.dh, P, ARM.camera_pose()).visibility_probability(q)
+    likely = q[np.argsort(p)[-3:]]                              # where geometry expects the hand
+    for theta in likely:
+        pl.record(theta, theta, 'failed', False, 0.0)
+    assert pl.cost(ARM.dh, P, ARM.camera_pose()).visibility_weight < 0.05
+    right = Planner(ARM, PoseDependentNoise(), PlannerSettings(occlusion_prior='geometric'))
+    right.start = pl.start
+    for theta in likely:
+        right.record(theta, theta, 'accepted', True, 0.0)
+    assert right.cost(ARM.dh, P, ARM.camera_pose()).visibility_weight > 0.8

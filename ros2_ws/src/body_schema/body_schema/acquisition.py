@@ -32,6 +32,11 @@ the body (root x points backward), ``pen = a * arctan(b * p_x)``, combine as
   (In the paper's form ``1 / eta`` varies about twice as much, in log terms, as ``C0`` does, so
   the occlusion model rather than the information decides the pick.)
 
+``eta`` is the occlusion model's posterior mean; with a :class:`~body_schema.occlusion.VisibilityPrior`
+its prior mean at each candidate is the geometric prediction from the current estimate (markers
+facing the camera inside the image), widened by the predicted hand-pose covariance ``H P H^T``
+already computed for the gain, instead of the paper's flat ``a0 / (a0 + b0)``.
+
 Strategies:
 
 * ``random`` (R): uniform in the calibration box.
@@ -69,7 +74,7 @@ from scipy.stats import qmc
 
 from . import kinematics
 from .noise import ConstantNoise, NoiseModel
-from .occlusion import OcclusionModel
+from .occlusion import OcclusionModel, VisibilityPrior
 from .robot import MarkerPlacement
 from .sampling import as_rng
 
@@ -105,13 +110,20 @@ DIRECT_ALGORITHMS = {
     'ORIG_DIRECT_L': nlopt.GN_ORIG_DIRECT_L,
 }
 
-#: NLopt bounded derivative-free local algorithms for the batch optimiser's refinement.
-LOCAL_ALGORITHMS = {
+#: Bounded derivative-free local algorithms for the batch optimiser's refinement: NLopt's, one
+#: point per evaluation, or ``PATTERN``, a batched pattern search (every round evaluates the
+#: incumbent's coordinate neighbours and a few random directions in one vectorised call, moves to
+#: the best or halves the step), which trades evaluations for far fewer calls.
+LOCAL_ALGORITHMS: dict[str, int | None] = {
     'BOBYQA': nlopt.LN_BOBYQA,
     'SBPLX': nlopt.LN_SBPLX,
     'NELDERMEAD': nlopt.LN_NELDERMEAD,
     'COBYLA': nlopt.LN_COBYLA,
+    'PATTERN': None,
 }
+
+#: Random directions per round of the ``PATTERN`` local search (besides the 2 L coordinate ones).
+PATTERN_RANDOM_DIRECTIONS = 10
 
 CRITERIA = ('a_optimal', 'v_optimal')
 OCCLUSION_MODES = ('paper', 'expected', 'gain')
@@ -217,7 +229,13 @@ class AcquisitionCost:
         Camera optical frame in the root frame.
     markers : sequence of MarkerPlacement
     occlusion : OcclusionModel, optional
-        ``eta(theta)``; ``None`` means ``eta = 1``.
+        ``eta(theta)``; ``None`` means ``eta = 1`` (or the visibility prior alone, if given).
+    visibility : VisibilityPrior, optional
+        Geometric prior mean of ``eta`` from the current estimate and its predicted hand-pose
+        covariance ``H P H^T``; ``None``: the occlusion model's flat prior.
+    visibility_weight : float
+        Weight ``w`` of the geometric prior: ``eta``'s prior mean is ``w p_geo + (1 - w) a0 / (a0 + b0)``
+        (see :func:`~body_schema.occlusion.geometric_evidence`).
     penalty_a, penalty_b : float
         ``a * arctan(b * p_x)`` penalty (``a = 0`` disables it).
     occlusion_mode : {'paper', 'expected', 'gain'}
@@ -235,6 +253,8 @@ class AcquisitionCost:
     camera_pose: NDArray[np.float64]
     markers: Sequence[MarkerPlacement]
     occlusion: OcclusionModel | None = None
+    visibility: VisibilityPrior | None = None
+    visibility_weight: float = 1.0
     penalty_a: float = 0.0
     penalty_b: float = 1.0
     occlusion_mode: str = 'paper'
@@ -243,6 +263,7 @@ class AcquisitionCost:
     noise_scales: tuple[float, float] = DETECTOR_NOISE_SCALES
     weight: NDArray[np.float64] | None = field(init=False, repr=False)
     uncertainty: float = field(init=False, repr=False)
+    _marker_frames: NDArray[np.float64] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         self.dh = np.asarray(self.dh, dtype=float)
@@ -253,6 +274,12 @@ class AcquisitionCost:
                              f'got {self.P.shape}')
         if not (np.all(np.isfinite(self.dh)) and np.all(np.isfinite(self.P))):
             raise ValueError('estimate or covariance contains NaN or inf')
+        self._marker_frames = (np.stack([m.hand_T_marker for m in self.markers]) if self.markers
+                               else np.zeros((0, 4, 4)))
+        if self.visibility is not None and not self.markers:
+            raise ValueError('a visibility prior needs at least one marker placement')
+        if not 0.0 <= self.visibility_weight <= 1.0:
+            raise ValueError(f'visibility_weight must be in [0, 1], got {self.visibility_weight}')
         if self.occlusion_mode not in OCCLUSION_MODES:
             raise ValueError(f'occlusion_mode must be one of {OCCLUSION_MODES}, got {self.occlusion_mode!r}')
         if self.criterion not in CRITERIA:
@@ -288,10 +315,38 @@ class AcquisitionCost:
         R = self.noise.hand_covariance(self.camera_pose, hand[0] if len(hand) == 1 else hand,  # noqa: N806
                                        self.markers).reshape(-1, 6, 6)
         hp = H @ self.P
-        gain = information_gain(hp, hp @ np.swapaxes(H, -1, -2) + R, self.weight)
-        eta = (np.ones(hand.shape[0]) if self.occlusion is None
-               else np.asarray(self.occlusion.mean(np.atleast_2d(thetas)), dtype=float))
+        hph = hp @ np.swapaxes(H, -1, -2)                                        # predicted pose covariance
+        gain = information_gain(hp, hph + R, self.weight)
+        prior = None if self.visibility is None else self._visibility(hand, hph)
+        if self.occlusion is not None:
+            if prior is not None and self.visibility_weight < 1.0:
+                flat = self.occlusion.a0 / (self.occlusion.a0 + self.occlusion.b0)
+                prior = self.visibility_weight * prior + (1.0 - self.visibility_weight) * flat
+            eta = np.asarray(self.occlusion.mean(np.atleast_2d(thetas), prior), dtype=float)
+        else:
+            eta = np.ones(hand.shape[0]) if prior is None else prior
         return gain, eta, hand[:, 0, 3]
+
+    def _visibility(self, hand: NDArray[np.float64], hph: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Geometric detection probability (N,) of hands (N, 4, 4) with predicted pose covariances (N, 6, 6)."""
+        var = np.diagonal(hph, axis1=-2, axis2=-1)
+        return self.visibility.probability(self.camera_pose, hand[:, None] @ self._marker_frames,
+                                           np.sqrt(var[:, :3].mean(axis=-1)),
+                                           np.degrees(np.sqrt(var[:, 3:].mean(axis=-1))))
+
+    def visibility_probability(self, thetas: ArrayLike) -> NDArray[np.float64]:
+        """The geometric prior alone at configurations (N, L) -> (N,), as the current estimate predicts it.
+
+        Raises
+        ------
+        ValueError
+            If the cost has no visibility prior.
+        """
+        if self.visibility is None:
+            raise ValueError('this AcquisitionCost has no visibility prior')
+        frames = kinematics.chain_frames(self.base, self.dh, np.atleast_2d(thetas))
+        H = kinematics.pose_jacobian_from_frames(frames)                         # noqa: N806
+        return self._visibility(frames[:, -1], H @ self.P @ np.swapaxes(H, -1, -2))
 
     def terms(self, theta: ArrayLike) -> tuple[float, float, float]:
         """``(C0, eta, p_x)`` at one configuration ``theta`` (L,); ``C0 = tr(A P) - g``."""
@@ -347,7 +402,7 @@ class SelectorConfig:
     """
 
     strategy: Strategy = Strategy.AL
-    gamma: float = 0.01
+    gamma: float = 0.02
     delta: float = 0.2
     optimizer: str = 'batch'
     algorithm: str = 'DIRECT_L'
@@ -605,8 +660,11 @@ class JointSelector:
 
     def _local(self, count: '_Counted', x0: NDArray[np.float64], lo: NDArray[np.float64],
                hi: NDArray[np.float64], free: NDArray[np.bool_], max_evals: int) -> None:
-        """A bounded derivative-free NLopt search from ``x0`` over the ``free`` joints."""
+        """A bounded derivative-free search from ``x0`` over the ``free`` joints."""
         if not np.any(free):
+            return
+        if LOCAL_ALGORITHMS[self.config.local_algorithm] is None:
+            self._pattern(count, x0, lo, hi, free, max_evals)
             return
         f0 = float(count(x0[None])[0])
         # Excluded points look worse than the start (finite, so BOBYQA's model stays sane).
@@ -629,6 +687,36 @@ class JointSelector:
             opt.optimize(np.clip(x0[free], lo[free], hi[free]))
         except (nlopt.RoundoffLimited, nlopt.ForcedStop):
             pass
+
+    def _pattern(self, count: '_Counted', x0: NDArray[np.float64], lo: NDArray[np.float64],
+                 hi: NDArray[np.float64], free: NDArray[np.bool_], max_evals: int) -> None:
+        """Batched pattern search from ``x0`` over the ``free`` joints, at most ``max_evals`` evaluations.
+
+        Each round evaluates ``x +- step_j e_j`` for every free joint ``j`` and
+        :data:`PATTERN_RANDOM_DIRECTIONS` random unit directions (scaled per joint by the step) in
+        one call; the best improvement is taken (and the step grown by half), else the step halves.
+        The first step is 5 % of each side, as for the NLopt searches.
+        """
+        idx = np.nonzero(free)[0]
+        axes = np.zeros((idx.size, lo.size))
+        axes[np.arange(idx.size), idx] = 1.0
+        step = 0.05 * (hi - lo)
+        x = np.clip(x0, lo, hi)
+        fx = float(count(x[None])[0])
+        used = 1
+        per_round = 2 * idx.size + PATTERN_RANDOM_DIRECTIONS
+        while used + per_round <= max_evals and np.all(step[idx] > 1e-6 * (hi - lo)[idx]):
+            rand = self._rng.standard_normal((PATTERN_RANDOM_DIRECTIONS, lo.size)) * free
+            rand /= np.maximum(np.linalg.norm(rand, axis=1, keepdims=True), 1e-12)
+            cand = np.clip(x + np.concatenate([axes, -axes, rand]) * step, lo, hi)
+            v = count(cand)
+            used += per_round
+            k = int(np.argmin(v))
+            if v[k] < fx:
+                x, fx = cand[k], float(v[k])
+                step = 1.5 * step
+            else:
+                step = 0.5 * step
 
     @staticmethod
     def _snap(count: '_Counted', targets: NDArray[np.float64]) -> None:

@@ -1,4 +1,6 @@
 """Acquisition: the closed-form A-optimality cost and the four strategies' guarantees."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -7,7 +9,7 @@ from body_schema import ekf, sampling
 from body_schema.acquisition import (AcquisitionCost, JointSelector, SelectorConfig, Strategy,
                                      expected_trace)
 from body_schema.noise import PoseDependentNoise
-from body_schema.occlusion import OcclusionModel
+from body_schema.occlusion import OcclusionModel, VisibilityPrior
 
 
 @pytest.fixture(scope='module')
@@ -176,6 +178,31 @@ def test_batched_evaluation_equals_single(arm, box_configs, learned_occlusion, c
     gain, eta, px = cost.terms_batch(qs)
     np.testing.assert_allclose(eta, learned_occlusion.mean(qs), rtol=1e-12)
     np.testing.assert_allclose(px, kinematics.forward_kinematics(arm.base, cost.dh, qs)[:, 0, 3], rtol=1e-12)
+
+
+def test_visibility_prior_enters_eta_in_batch_and_single_evaluation(arm, box_configs, learned_occlusion):
+    flat = _cost(arm, box_configs, learned_occlusion, 'gain', 'v_optimal')
+    geo = replace(flat, visibility=VisibilityPrior(arm.camera))
+    qs = sampling.uniform_configs(arm.calibration_box, 64, 5)
+    np.testing.assert_allclose(geo.evaluate(qs), [geo(q) for q in qs], rtol=1e-12, atol=1e-15)
+    gain, eta, _ = geo.terms_batch(qs)
+    np.testing.assert_allclose(gain, flat.terms_batch(qs)[0], rtol=1e-12)
+    # eta's prior mean is the geometric prediction, blurred by the predicted hand-pose covariance.
+    frames = kinematics.chain_frames(arm.base, geo.dh, qs)
+    H = kinematics.pose_jacobian_from_frames(frames)
+    var = np.diagonal(H @ geo.P @ np.swapaxes(H, -1, -2), axis1=-2, axis2=-1)
+    markers = np.stack([m.hand_T_marker for m in arm.markers])
+    p = geo.visibility.probability(geo.camera_pose, frames[:, -1, None] @ markers,
+                                   np.sqrt(var[:, :3].mean(-1)), np.degrees(np.sqrt(var[:, 3:].mean(-1))))
+    np.testing.assert_allclose(eta, learned_occlusion.mean(qs, p), rtol=1e-12)
+    assert np.ptp(p) > 0.1                                 # the geometry tells configurations apart
+    # Weight 0: the flat prior again; a bad weight is refused.
+    np.testing.assert_allclose(replace(geo, visibility_weight=0.0).terms_batch(qs)[1], learned_occlusion.mean(qs),
+                               rtol=1e-12)
+    with pytest.raises(ValueError, match='visibility_weight.*1.5'):
+        replace(geo, visibility_weight=1.5)
+    # Without a learned model the prior alone is eta.
+    np.testing.assert_allclose(replace(geo, occlusion=None).terms_batch(qs)[1], p, rtol=1e-12)
 
 
 def test_a_optimal_gain_is_the_trace_reduction_of_a_real_update(arm, box_configs):

@@ -49,3 +49,103 @@ def test_bad_inputs():
         OcclusionModel(np.array([[1.0, 0.0]]))
     with pytest.raises(ValueError, match='finite'):
         OcclusionModel(BOX).add([0.0, np.nan, 0.0], True)
+
+
+# --- the geometric visibility prior -------------------------------------------------------------
+
+from body_schema.occlusion import VisibilityPrior  # noqa: E402
+from body_schema.robot import CameraIntrinsics  # noqa: E402
+
+CAM = CameraIntrinsics(320, 240, 250.0, 250.0, 159.5, 119.5)
+
+
+def _marker_at(x, y, z, facing=True):
+    """A marker at (x, y, z) in the camera frame (= root frame here), facing the camera or away."""
+    m = np.eye(4)
+    m[:3, 3] = [x, y, z]
+    if facing:                      # z out of the face, pointing back at the camera
+        m[:3, :3] = np.diag([1.0, -1.0, -1.0])
+    return m
+
+
+@pytest.fixture
+def prior():
+    return VisibilityPrior(CAM)
+
+
+def test_visibility_high_in_view_low_outside_behind_and_facing_away(prior):
+    cam = np.eye(4)
+    centre = prior.probability(cam, _marker_at(0.0, 0.0, 0.3)[None])
+    assert centre == pytest.approx(prior.ceiling, abs=1e-3)
+    outside = prior.probability(cam, _marker_at(0.3, 0.0, 0.3)[None])          # u = 160 + 250 = 410 > 320
+    away = prior.probability(cam, _marker_at(0.0, 0.0, 0.3, facing=False)[None])
+    behind = prior.probability(cam, _marker_at(0.0, 0.0, -0.3)[None])
+    for p in (outside, away, behind):
+        assert p == pytest.approx(prior.floor, abs=1e-3)
+    # Any of several markers suffices; a batch of hands evaluates each.
+    two = np.stack([_marker_at(0.0, 0.0, 0.3, facing=False), _marker_at(0.0, 0.0, 0.3)])
+    batch = prior.probability(cam, np.stack([two, two[:1].repeat(2, 0)]))
+    np.testing.assert_allclose(batch, [centre, away], atol=1e-12)
+
+
+def test_visibility_falls_smoothly_across_the_image_edge(prior):
+    cam = np.eye(4)
+    xs = np.linspace(0.0, 0.3, 31)
+    p = prior.probability(cam, np.stack([_marker_at(x, 0.0, 0.3) for x in xs])[:, None])
+    assert np.all(np.diff(p) <= 1e-12) and p[0] > 0.85 and p[-1] < 0.05
+    # Half-way where the margin is exactly met: u = W - margin W.
+    x_half = (CAM.width * (1 - prior.margin) - CAM.cx) * 0.3 / CAM.fx
+    mid = prior.probability(cam, _marker_at(x_half, 0.0, 0.3)[None])
+    assert mid == pytest.approx(prior.floor + 0.5 * (prior.ceiling - prior.floor), abs=1e-6)
+
+
+def test_an_uncertain_estimate_softens_the_prediction(prior):
+    cam = np.eye(4)
+    outside = _marker_at(0.2, 0.0, 0.3)[None]                                 # about 10 px out of view
+    sure = prior.probability(cam, outside)
+    unsure = prior.probability(cam, outside, position_std=0.05)
+    assert sure < 0.05 < 0.2 < unsure < 0.5
+    turned = _marker_at(0.0, 0.0, 0.3)
+    turned[:3, :3] = turned[:3, :3] @ np.array([[1, 0, 0], [0, np.cos(1.4), -np.sin(1.4)],
+                                                [0, np.sin(1.4), np.cos(1.4)]])   # phi = 80 deg
+    assert prior.probability(cam, turned[None]) < prior.probability(cam, turned[None], orientation_std_deg=30.0)
+
+
+@pytest.mark.parametrize('field, value', [('max_view_angle_deg', 0.0), ('margin_softness', -1.0),
+                                          ('margin', float('nan')), ('floor', 0.0), ('ceiling', 1.0)])
+def test_bad_visibility_settings_name_the_value(field, value):
+    with pytest.raises(ValueError, match=field if field not in ('floor', 'ceiling') else 'floor < ceiling'):
+        VisibilityPrior(CAM, **{field: value})
+
+
+def test_prior_mean_replaces_the_flat_one_with_the_same_strength():
+    m = OcclusionModel(BOX, length_scale=0.1, a0=1.0, b0=2.0)
+    t = np.array([0.0, 1.0, 0.0])
+    assert m.mean(t, prior=0.8) == pytest.approx(0.8)
+    np.testing.assert_allclose(m.mean(np.stack([t, t]), prior=np.array([0.2, 0.9])), [0.2, 0.9])
+    m.add(t, False)
+    # One failure at t against a prior of strength a0 + b0 = 3.
+    assert m.mean(t, prior=0.8) == pytest.approx(3 * 0.8 / (3 + 1))
+    assert m.mean(t) == pytest.approx(1.0 / 4.0)
+
+
+
+def test_geometric_evidence_trusts_predictions_that_come_true():
+    rng = np.random.default_rng(3)
+    m = OcclusionModel(BOX, length_scale=0.1, a0=1.0, b0=2.0)
+    q = BOX[:, 0] + rng.random((40, 3)) * (BOX[:, 1] - BOX[:, 0])
+    p = rng.uniform(0.02, 0.9, 40)
+    seen = rng.random(40) < p                              # outcomes drawn from the prediction
+    assert m.geometric_evidence(q, seen, p) > 0.95
+    assert m.geometric_evidence(q, ~seen, p) < 0.01        # the opposite outcomes
+    assert m.geometric_evidence(q[:0], seen[:0], p[:0]) == pytest.approx(0.5)
+    # Repeated failures where geometry expects the hand: two far-apart misses outweigh even odds.
+    assert m.geometric_evidence(BOX.T, [False, False], [0.9, 0.9]) < 0.2
+    # The same misses next to each other: the kernel predicts the second, so it costs geometry less.
+    near = np.stack([BOX[:, 0], BOX[:, 0] + 1e-3])
+    assert m.geometric_evidence(near, [False, False], [0.9, 0.9]) > m.geometric_evidence(BOX.T, [False, False],
+                                                                                          [0.9, 0.9])
+    with pytest.raises(ValueError, match=r'\(0, 1\).*1\.0'):
+        m.geometric_evidence(q[:1], [True], [1.0])
+    with pytest.raises(ValueError, match='one entry per attempt.*2, 1 and 1'):
+        m.geometric_evidence(q[:2], [True], [0.5])

@@ -455,12 +455,12 @@ class RunResult:
 
 @contextmanager
 def _output_to(path: Path) -> Iterator[None]:
-    """Send this process's stdout and stderr (file descriptors 1 and 2: rcutils logs and
+    """Append this process's stdout and stderr (file descriptors 1 and 2: rcutils logs and
     PyBullet's C prints included) to ``path``."""
     sys.stdout.flush()
     sys.stderr.flush()
     saved = [os.dup(1), os.dup(2)]
-    with path.open('w') as f:
+    with path.open('a') as f:
         os.dup2(f.fileno(), 1)
         os.dup2(f.fileno(), 2)
         try:
@@ -496,9 +496,9 @@ def execute_run(spec: RunSpec, domain_id: int, settings: GraphSettings, system: 
             log_path, mcap_path = Path(tmp) / 'run.log', Path(tmp) / 'run.mcap'
         rows: list[dict[str, Any]] | None = None
         error: str | None = None
+        log_path.write_text(f'{spec.label}: {spec.seeds}, system {system}, ROS_DOMAIN_ID {domain_id}, '
+                            f'host {host}, Ray node {node_id or "-"}\n')
         with _output_to(log_path):
-            print(f'{spec.label}: {spec.seeds}, system {system}, ROS_DOMAIN_ID {domain_id}, '
-                  f'host {host}, Ray node {node_id or "-"}', flush=True)
             try:
                 rows = run_graph(spec, domain_id, settings, mcap_path if record else None, system)
             except Exception as exc:  # noqa: BLE001 (a failed run must not stop the others; the log keeps why)

@@ -242,12 +242,12 @@ def test_force_new_moves_the_old_results_aside(tmp_path: Path) -> None:
     (tmp_path / 'metrics.csv').write_text('old\n')
     old_csv = ex.plan_runs(config)[0].path(tmp_path, '.csv').read_text()
     paper = replace(config, system='paper', repetitions=1, force_new=True)
-    # Nothing may run here: stop at the first run submitted to Ray.
+    # No graph runs here: stop where the runs would be submitted to Ray, as Ctrl-C would.
     log = io.StringIO()
     with pytest.MonkeyPatch.context() as mp:
-        def no_ray(todo, *args, **kwargs):
+        def interrupted(*args: object, **kwargs: object) -> None:
             raise KeyboardInterrupt
-        mp.setattr(ex, '_run_all', no_ray)
+        mp.setattr(ex, 'ray_runtime', interrupted)
         with pytest.raises(KeyboardInterrupt):
             ex.run_experiment(paper, stream=log)
     aside = sorted(tmp_path.glob('previous-*'))

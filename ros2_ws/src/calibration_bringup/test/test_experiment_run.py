@@ -89,3 +89,16 @@ def test_two_methods_run_resume_and_report(tmp_path: Path) -> None:
     assert (tmp_path / 'runs' / 'AL-CN' / 'rep00.csv').stat().st_mtime_ns == stamps['AL-CN']
     rerun = ex.read_rows(tmp_path / 'runs' / 'R' / 'rep00.csv')
     assert [r['position_mm'] for r in rerun][:1] == [runs['R'][0]['position_mm']]
+
+
+@pytest.mark.slow
+def test_a_task_with_a_shared_output_writes_its_log_there_and_returns_no_bytes(tmp_path: Path) -> None:
+    spec = ex.RunSpec('R', 4, 9, 1)
+    result = ex.execute_run(spec, DOMAIN_BASE + 1, ex.GraphSettings(), 'ours', record=False,
+                            shared_root=str(tmp_path))
+    assert result.error is None and [r['iteration'] for r in result.rows] == [0, 1]
+    assert (result.log, result.mcap, result.node_id) == (None, None, '')    # outside Ray: no node
+    log = spec.path(tmp_path, '.log').read_text()
+    assert f'ROS_DOMAIN_ID {DOMAIN_BASE + 1}' in log and 'icub_sim' in log
+    # The CSV (the "finished" mark) is the driver's to write, never the task's.
+    assert not spec.path(tmp_path, '.csv').exists()

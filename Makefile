@@ -14,7 +14,7 @@ export AMENT_PREFIX_PATH := $(VENV)$(if $(AMENT_PREFIX_PATH),:$(AMENT_PREFIX_PAT
 export PATH := $(VENV)/bin:$(PATH)
 export PYTHONDONTWRITEBYTECODE := 1
 
-.PHONY: setup test demo bench experiment experiment-quick clean
+.PHONY: setup test demo bench experiment experiment-paper experiment-quick clean
 
 setup: $(STAMP)
 
@@ -31,11 +31,15 @@ demo: setup
 bench: setup
 	$(PY) -m tools.bench
 
+# The comparison on a local Ray runtime (EXPERIMENT_ARGS='--address auto --jobs 16' for a cluster).
 experiment: setup
-	$(PY) -m calibration_bringup.experiment $(EXPERIMENT_ARGS)
+	$(PY) -m calibration_bringup.experiment --system ours $(EXPERIMENT_ARGS)
+
+experiment-paper: setup
+	$(PY) -m calibration_bringup.experiment --system paper $(EXPERIMENT_ARGS)
 
 experiment-quick: setup
-	$(PY) -m calibration_bringup.experiment --quick $(EXPERIMENT_ARGS)
+	$(PY) -m calibration_bringup.experiment --system ours --quick $(EXPERIMENT_ARGS)
 
 clean:
 	rm -rf $(VENV) build install log .pytest_cache

@@ -1,37 +1,55 @@
-"""The paper's experiment on the real node graph: methods x repetitions x iterations.
+"""The paper's experiment on the real node graph: methods x repetitions x iterations, fanned out with Ray.
 
 Usage::
 
-    python -m calibration_bringup.experiment                 # 7 methods x 50 repetitions x 50 iterations
-    python -m calibration_bringup.experiment --quick         # 7 methods x 3 repetitions x 20 iterations
+    python -m calibration_bringup.experiment                  # ours: 7 methods x 50 repetitions x 50 iterations
+    python -m calibration_bringup.experiment --system paper   # the paper's system, same seeds and robots
+    python -m calibration_bringup.experiment --quick          # 7 methods x 3 repetitions x 20 iterations
     python -m calibration_bringup.experiment --methods AL CCSAL --repetitions 3 --iterations 10
-    python -m calibration_bringup.experiment_figures results/experiment     # re-plot only
+    python -m calibration_bringup.experiment --address auto --jobs 16      # on a running Ray cluster
+    python -m calibration_bringup.experiment_figures results/experiment-ours     # re-plot only
 
 Methods (docs/architecture.md section 5): ``R``, ``AL``, ``UCSAL``, ``CCSAL`` with the pose-dependent noise
 model, and ``AL-CN``, ``UCSAL-CN``, ``CCSAL-CN`` with the constant one (selector and estimator
 both use the CN covariance; the detector keeps publishing pose-dependent covariances, which the
 estimator then ignores).
 
-Repetition ``r`` uses the seed ``s = seed_base + r`` for the simulated robot (``perturb_seed``),
-the estimator's initial guess (``initial_seed``) and the selector (``seed``), so every method of a
-repetition starts from the same true robot and the same guess.
+Systems (:data:`SYSTEMS`): ``ours`` is the nodes' parameter files as they are; ``paper`` overrides
+them with the paper's system (EKF with one linearisation, the cost ``C0 / eta``, a-optimality,
+DIRECT-L with 1000 evaluations). Both draw the same robots and guesses from the same seeds.
 
-One run is one fresh graph (SimNode, DetectorNode, EstimatorNode, SelectorNode, optionally the
-MCAP recorder, and a probe) on a SingleThreadedExecutor with its own ``Context`` and
-``ROS_DOMAIN_ID``, inside a worker process (``--jobs`` spawned workers, each with its own domain
-id, running its runs one after another). After every ``/calibration/progress`` record the probe
-scores the estimator's current table with :class:`body_schema.metrics.PoseErrorEvaluator` against
-the simulator's true table (row 0 is the initial guess). Each run's rows are written atomically
-to ``<output>/runs/<method>/rep<NN>.csv`` when the run ends, so a killed run is simply redone and
-finished runs are skipped on restart; its log goes to ``rep<NN>.log`` and, with ``--record``, its
-non-image topics to ``rep<NN>.mcap``. At the end all runs are combined into
-``<output>/metrics.csv`` and :mod:`calibration_bringup.experiment_figures` draws the figures and
-writes ``<output>/summary.md``.
+Seeds: repetition ``r`` has the seed ``s = seed_base + r``; :func:`derive_seeds` spawns three
+independent seeds from it (``numpy.random.SeedSequence(s).spawn(3)``) for the real robot
+(``perturb_seed``), the estimator's initial guess (``initial_seed``) and the selector (``seed``).
+Every method of a repetition shares all three; they are recorded in each run's CSV and in
+``config.json``.
+
+Execution: one Ray task per run (``num_cpus=1``), at most ``--jobs`` in flight. Without
+``--address`` the command starts a local Ray runtime of ``--jobs`` CPUs for its own use;
+``--address auto`` or ``--address ray://host:10001`` submits to an existing cluster whose nodes
+have this workspace installed. Each task runs one fresh graph (SimNode, DetectorNode,
+EstimatorNode, SelectorNode, optionally the MCAP recorder, and a probe) on a
+SingleThreadedExecutor with its own ``Context`` and a ``ROS_DOMAIN_ID`` that the driver leases
+to it from a pool of ``--jobs`` ids, so no two runs in flight share one on any node. After every
+``/calibration/progress`` record the probe scores the estimator's current table with
+:class:`body_schema.metrics.PoseErrorEvaluator` against the simulator's true table (row 0 is the
+initial guess). The task returns its rows, its log and (``--record``) its MCAP bytes; the driver
+writes ``<output>/runs/<method>/rep<NN>.log`` and ``.mcap``, then the CSV ``rep<NN>.csv``
+atomically, last: a run whose CSV exists is finished and skipped on restart, a run interrupted
+or failed leaves none. With ``--shared-output PATH`` (a path every node sees) the tasks write
+their logs and MCAPs there themselves. Ctrl-C cancels the runs in flight (their workers are
+killed) and writes nothing more. At the end all runs are combined into ``<output>/metrics.csv``
+and :mod:`calibration_bringup.experiment_figures` draws the figures and writes ``<output>/summary.md``.
+
+Resume checks settings: ``config.json`` records, per method, everything that changes a run's
+results (:func:`run_settings`: every node parameter but the seeds, iterations, seed base,
+system) and its hash; every CSV row carries that hash. Resuming with other settings is refused
+with the differing keys named; ``--force-new`` moves the old results aside and starts over.
 
 Time accounting per iteration (CSV columns, wall seconds unless named ``_sim_``): ``selection_s``
-(the selector's DIRECT search), ``move_sim_s`` (the simulated move), ``sim_s`` (simulator
+(the selector's search), ``move_sim_s`` (the simulated move), ``sim_s`` (simulator
 callbacks: physics, rendering, publishing), ``render_s`` (rendering alone), ``detect_s``
-(detector callbacks), ``estimator_s`` (estimator callbacks, the EKF update among them),
+(detector callbacks), ``estimator_s`` (estimator callbacks, the update among them),
 ``selector_s`` (selector callbacks, the selection among them), ``recorder_s``, ``cpu_s`` (CPU
 time of the whole process: on a shared machine, what the iteration costs with a core of its own)
 and ``wall_s`` (everything, the executor's own work included).
@@ -40,24 +58,29 @@ from __future__ import annotations
 
 import argparse
 import csv
+import hashlib
 import json
-import math
-import multiprocessing as mp
+import logging
 import os
-import queue
+import socket
 import sys
+import tempfile
 import time
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+import traceback
+from collections import deque
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Iterator, Sequence, TextIO
+from typing import Any, Iterator, Mapping, Sequence, TextIO
+
+import numpy as np
 
 from .graph import InProcessGraph, default_parameters, merge_parameters, recorder_available, ros_session
 
-__all__ = ['METHODS', 'COLUMNS', 'Method', 'RunSpec', 'GraphSettings', 'ExperimentConfig', 'RunError',
-           'plan_runs', 'is_finished', 'node_parameters', 'run_graph', 'write_rows', 'read_rows', 'combine_runs',
-           'Progress', 'run_experiment', 'main']
+__all__ = ['METHODS', 'SYSTEMS', 'COLUMNS', 'Method', 'Seeds', 'RunSpec', 'GraphSettings', 'ExperimentConfig',
+           'RunError', 'RunResult', 'ExperimentOutcome', 'derive_seeds', 'plan_runs', 'node_parameters',
+           'run_settings', 'settings_hash', 'settings_difference', 'is_finished', 'run_graph', 'execute_run',
+           'write_rows', 'read_rows', 'combine_runs', 'domain_ids', 'run_experiment', 'main']
 
 
 @dataclass(frozen=True)
@@ -73,15 +96,31 @@ METHODS: dict[str, Method] = {m.name: m for m in (
     Method('R', 'random'), Method('AL', 'al'), Method('UCSAL', 'ucsal'), Method('CCSAL', 'ccsal'),
     Method('AL-CN', 'al', True), Method('UCSAL-CN', 'ucsal', True), Method('CCSAL-CN', 'ccsal', True))}
 
+#: Compared systems: per-node parameter overrides of the nodes' parameter files.
+SYSTEMS: dict[str, dict[str, dict[str, Any]]] = {
+    'ours': {},
+    # The paper: EKF (one linearisation), cost C0 / eta with a-optimality, DIRECT-L with 1000 evaluations.
+    'paper': {'estimator': {'estimator': 'ekf', 'iterations': 1},
+              'selector': {'occlusion_mode': 'paper', 'criterion': 'a_optimal', 'optimizer': 'direct',
+                           'algorithm': 'DIRECT_L', 'max_evals': 1000}},
+}
+
 #: Columns of every run's CSV and of the combined ``metrics.csv``.
 COLUMNS: tuple[str, ...] = (
-    'method', 'repetition', 'seed', 'iteration', 'outcome', 'detected', 'position_mm', 'orientation_deg',
-    'movement_deg', 'discarded', 'selection_s', 'move_sim_s', 'sim_s', 'render_s', 'detect_s',
-    'estimator_s', 'selector_s', 'recorder_s', 'cpu_s', 'wall_s')
+    'method', 'repetition', 'seed', 'robot_seed', 'guess_seed', 'selector_seed', 'iteration', 'outcome',
+    'detected', 'position_mm', 'orientation_deg', 'movement_deg', 'discarded', 'selection_s', 'move_sim_s',
+    'sim_s', 'render_s', 'detect_s', 'estimator_s', 'selector_s', 'recorder_s', 'cpu_s', 'wall_s',
+    'settings_hash')
 
 #: Callback time accounting: CSV column -> node attribute of the graph.
 _NODE_COLUMNS = {'sim_s': 'sim', 'detect_s': 'detector', 'estimator_s': 'estimator',
                  'selector_s': 'selector', 'recorder_s': 'recorder'}
+
+#: The node parameters that take a run's seeds (the rest of the parameters are its settings).
+_SEED_PARAMETERS = (('sim', 'perturb_seed'), ('estimator', 'initial_seed'), ('selector', 'seed'))
+
+#: Exclusive upper bound of the nodes' seed parameters (declared range 0 .. 2**31 - 1).
+SEED_MODULUS = 2**31 - 1
 
 
 class RunError(RuntimeError):
@@ -123,8 +162,35 @@ class GraphSettings:
 
 
 @dataclass(frozen=True)
+class Seeds:
+    """The independent seeds of one repetition (each in ``0 .. SEED_MODULUS - 1``)."""
+
+    robot: int
+    guess: int
+    selector: int
+
+
+def derive_seeds(seed: int) -> Seeds:
+    """Independent seeds of the real robot, the initial guess and the selector from one repetition seed.
+
+    ``numpy.random.SeedSequence(seed).spawn(3)``, each child's first 32-bit word modulo
+    :data:`SEED_MODULUS` (the nodes' seed parameters are 31-bit).
+
+    Raises
+    ------
+    ValueError
+        If ``seed`` is negative.
+    """
+    if seed < 0:
+        raise ValueError(f'repetition seed must be >= 0, got {seed}')
+    robot, guess, selector = (int(c.generate_state(1)[0]) % SEED_MODULUS
+                              for c in np.random.SeedSequence(seed).spawn(3))
+    return Seeds(robot, guess, selector)
+
+
+@dataclass(frozen=True)
 class RunSpec:
-    """One run: a method on one repetition (true robot + initial guess)."""
+    """One run: a method on one repetition (true robot + initial guess, from the repetition's seed)."""
 
     method: str
     repetition: int
@@ -132,10 +198,14 @@ class RunSpec:
     iterations: int
 
     @property
+    def seeds(self) -> Seeds:
+        return derive_seeds(self.seed)
+
+    @property
     def stem(self) -> str:
         return f'runs/{self.method}/rep{self.repetition:02d}'
 
-    def path(self, root: Path, suffix: str) -> Path:
+    def path(self, root: Path | str, suffix: str) -> Path:
         """``<root>/runs/<method>/rep<NN><suffix>``."""
         return Path(root) / f'{self.stem}{suffix}'
 
@@ -144,20 +214,34 @@ class RunSpec:
         return f'{self.method} rep {self.repetition} (seed {self.seed})'
 
 
+def _default_output(system: str, quick: bool = False) -> Path:
+    return Path(f'results/experiment-{system}{"-quick" if quick else ""}')
+
+
 @dataclass(frozen=True)
 class ExperimentConfig:
-    """What to run and where (the CLI's options)."""
+    """What to run, with which system, where (the CLI's options).
+
+    ``address`` None starts a local Ray runtime of ``jobs`` CPUs; otherwise ``ray.init``'s address
+    (``auto``, ``ray://host:10001``, ``host:6379``). ``shared``: ``output`` is visible at the same
+    path on every node (the tasks write logs and MCAPs there). ``force_new``: move earlier results
+    in ``output`` aside instead of resuming them.
+    """
 
     repetitions: int = 50
     iterations: int = 50
     methods: tuple[str, ...] = tuple(METHODS)
+    system: str = 'ours'
     jobs: int = 2
-    output: Path = Path('results/experiment')
+    output: Path = _default_output('ours')
     seed_base: int = 0
     record: bool = True
     domain_base: int | None = None
     figures: bool = True
     graph: GraphSettings = field(default_factory=GraphSettings)
+    address: str | None = None
+    shared: bool = False
+    force_new: bool = False
 
     def __post_init__(self) -> None:
         bad = [m for m in self.methods if m not in METHODS]
@@ -165,6 +249,8 @@ class ExperimentConfig:
             raise ValueError(f'unknown methods {bad}; expected any of {list(METHODS)}')
         if not self.methods:
             raise ValueError('methods must not be empty')
+        if self.system not in SYSTEMS:
+            raise ValueError(f'unknown system {self.system!r}; expected one of {list(SYSTEMS)}')
         for name in ('repetitions', 'iterations', 'jobs'):
             if getattr(self, name) < 1:
                 raise ValueError(f'{name} must be >= 1, got {getattr(self, name)}')
@@ -185,8 +271,12 @@ def plan_runs(config: ExperimentConfig) -> list[RunSpec]:
             for r in range(config.repetitions) for m in config.methods]
 
 
-def node_parameters(spec: RunSpec, settings: GraphSettings = GraphSettings()) -> dict[str, dict[str, Any]]:
-    """Parameter overrides of each node for ``spec`` (pure; the graph applies them).
+def node_parameters(spec: RunSpec, settings: GraphSettings = GraphSettings(),
+                    system: str = 'ours') -> dict[str, dict[str, Any]]:
+    """Parameter overrides of each node for ``spec`` on ``system`` (pure; the graph applies them).
+
+    Layers, later winning: the nodes' parameter files, :data:`SYSTEMS` ``[system]``, the run's
+    graph settings, seeds and method.
 
     Returns
     -------
@@ -194,22 +284,55 @@ def node_parameters(spec: RunSpec, settings: GraphSettings = GraphSettings()) ->
         ``{'sim': {...}, 'detector': {...}, 'estimator': {...}, 'selector': {...}}``.
     """
     method = METHODS[spec.method]
+    seeds = spec.seeds
     noise = {'noise_model': 'constant'} if method.constant_noise else {}
-    return merge_parameters(default_parameters(), {
-        'sim': {'perturb_seed': spec.seed, 'image_rate': settings.image_rate, 'physics_step': settings.physics_step,
-                'max_joint_speed_deg': settings.max_joint_speed_deg,
+    return merge_parameters(default_parameters(), SYSTEMS[system], {
+        'sim': {'perturb_seed': seeds.robot, 'image_rate': settings.image_rate,
+                'physics_step': settings.physics_step, 'max_joint_speed_deg': settings.max_joint_speed_deg,
                 'image_width': settings.image_width, 'image_height': settings.image_height},
-        'estimator': {'initial_seed': spec.seed, **noise},
-        'selector': {'strategy': method.strategy, 'iterations': spec.iterations, 'seed': spec.seed, **noise},
+        'estimator': {'initial_seed': seeds.guess, **noise},
+        'selector': {'strategy': method.strategy, 'iterations': spec.iterations, 'seed': seeds.selector, **noise},
     })
+
+
+# ------------------------------------------------------------------------------------------
+# Settings: what a run's results depend on besides its seeds
+
+def run_settings(config: ExperimentConfig, method: str) -> dict[str, Any]:
+    """Everything that changes the results of ``method``'s runs in ``config`` except the
+    per-repetition seeds (which follow from ``seed_base``), flattened to ``node.parameter`` keys.
+
+    The repetition count, the method list, ``jobs``, recording and where the runs execute are
+    not in it: they change which runs exist or how fast, not what a run computes.
+    """
+    params = node_parameters(RunSpec(method, 0, config.seed_base, config.iterations), config.graph, config.system)
+    for node, name in _SEED_PARAMETERS:
+        params[node].pop(name)
+    flat: dict[str, Any] = {'system': config.system, 'seed_base': config.seed_base,
+                            'iterations': config.iterations, 'seeding': 'SeedSequence.spawn(3)'}
+    for node, values in sorted(params.items()):
+        flat.update({f'{node}.{k}': v for k, v in sorted(values.items())})
+    return flat
+
+
+def settings_hash(settings: Mapping[str, Any]) -> str:
+    """A short stable hash of ``settings`` (SHA-256 of its sorted JSON, 16 hex digits)."""
+    text = json.dumps(settings, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def settings_difference(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[str]:
+    """``key: old -> new`` for every key whose value differs (``<unset>`` where one side lacks it)."""
+    missing = '<unset>'
+    return [f'{k}: {old.get(k, missing)!r} -> {new.get(k, missing)!r}'
+            for k in sorted(set(old) | set(new)) if old.get(k, missing) != new.get(k, missing)]
 
 
 # ------------------------------------------------------------------------------------------
 # One run: the graph in this process
 
 def run_graph(spec: RunSpec, domain_id: int, settings: GraphSettings = GraphSettings(),
-              record_path: Path | None = None,
-              on_iteration: Callable[[dict[str, Any]], None] | None = None) -> list[dict[str, Any]]:
+              record_path: Path | None = None, system: str = 'ours') -> list[dict[str, Any]]:
     """Run ``spec`` on a fresh in-process graph and return its rows (iteration 0 = initial guess).
 
     Parameters
@@ -220,15 +343,14 @@ def run_graph(spec: RunSpec, domain_id: int, settings: GraphSettings = GraphSett
     settings : GraphSettings
     record_path : Path or None
         Record the non-image topics to this MCAP file.
-    on_iteration : callable or None
-        Called with each row as soon as its iteration ends (progress reporting).
+    system : str
+        A key of :data:`SYSTEMS`.
 
     Raises
     ------
     RunError
         If the selector has not finished ``spec.iterations`` iterations within the deadline.
     """
-    import numpy as np
     from rclpy.node import Node
     from std_msgs.msg import String
 
@@ -237,7 +359,8 @@ def run_graph(spec: RunSpec, domain_id: int, settings: GraphSettings = GraphSett
     rows: list[dict[str, Any]] = []
     with ros_session(domain_id) as (ctx, executor):
         try:
-            graph = InProcessGraph(ctx, executor, node_parameters(spec, settings), record_path, time_callbacks=True)
+            graph = InProcessGraph(ctx, executor, node_parameters(spec, settings, system), record_path,
+                                   time_callbacks=True)
         except RuntimeError as exc:     # the recorder asked for but missing
             raise RunError(f'{exc}; use --no-record') from exc
         with graph:
@@ -247,7 +370,9 @@ def run_graph(spec: RunSpec, domain_id: int, settings: GraphSettings = GraphSett
             def totals() -> dict[str, float]:
                 return {**graph.callback_seconds, 'render': sim.world.render_seconds}
 
-            base = {'method': spec.method, 'repetition': spec.repetition, 'seed': spec.seed}
+            seeds = spec.seeds
+            base = {'method': spec.method, 'repetition': spec.repetition, 'seed': spec.seed,
+                    'robot_seed': seeds.robot, 'guess_seed': seeds.guess, 'selector_seed': seeds.selector}
             e0 = evaluate(est.estimator.dh)
             rows.append({**base, 'iteration': 0, 'outcome': 'initial', 'detected': '',
                          'position_mm': e0.position_mm, 'orientation_deg': e0.orientation_deg,
@@ -288,8 +413,6 @@ def run_graph(spec: RunSpec, domain_id: int, settings: GraphSettings = GraphSett
                     # when the record arrived.
                     err = evaluate(tables[-1])
                     rows[-1]['position_mm'], rows[-1]['orientation_deg'] = err.position_mm, err.orientation_deg
-                    if on_iteration is not None:
-                        on_iteration(rows[-1])
                 if time.monotonic() > deadline:
                     raise RunError(f'{spec.label}: only {len(rows) - 1} of {spec.iterations} iterations '
                                    f'within {limit:.0f} s '
@@ -297,6 +420,94 @@ def run_graph(spec: RunSpec, domain_id: int, settings: GraphSettings = GraphSett
             # The bag is complete once it holds the last progress record too.
             graph.wait_for_recorder('/calibration/progress', spec.iterations)
     return rows
+
+
+@dataclass
+class RunResult:
+    """What a run's task returns to the driver.
+
+    Attributes
+    ----------
+    spec : RunSpec
+    rows : list of dict or None
+        The run's rows; None if it failed.
+    error : str or None
+        Why it failed (exception type and message; the traceback is in the log).
+    log, mcap : bytes or None
+        The run's output and recording, when the driver writes them (not with a shared output).
+    node_id, host : str
+        The Ray node and host the run executed on ('' outside Ray).
+    domain_id : int
+    wall_s : float
+        Wall time of the whole task.
+    """
+
+    spec: RunSpec
+    rows: list[dict[str, Any]] | None
+    error: str | None
+    log: bytes | None
+    mcap: bytes | None
+    node_id: str
+    host: str
+    domain_id: int
+    wall_s: float
+
+
+@contextmanager
+def _output_to(path: Path) -> Iterator[None]:
+    """Append this process's stdout and stderr (file descriptors 1 and 2: rcutils logs and
+    PyBullet's C prints included) to ``path``."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
+    with path.open('a') as f:
+        os.dup2(f.fileno(), 1)
+        os.dup2(f.fileno(), 2)
+        try:
+            yield
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            for fd, copy in zip((1, 2), saved):
+                os.dup2(copy, fd)
+                os.close(copy)
+
+
+def _node_id() -> str:
+    import ray
+
+    return ray.get_runtime_context().get_node_id() if ray.is_initialized() else ''
+
+
+def execute_run(spec: RunSpec, domain_id: int, settings: GraphSettings, system: str, record: bool,
+                shared_root: str | None = None) -> RunResult:
+    """A run's task body: run ``spec`` with its output captured; never raises for a failed run.
+
+    With ``shared_root`` the log and MCAP go to ``spec.path(shared_root, ...)`` directly;
+    otherwise to a temporary directory whose files are returned as bytes.
+    """
+    t0 = time.perf_counter()
+    node_id, host = _node_id(), socket.gethostname()
+    with tempfile.TemporaryDirectory(prefix='experiment-run-') as tmp:
+        if shared_root is not None:
+            log_path, mcap_path = spec.path(shared_root, '.log'), spec.path(shared_root, '.mcap')
+            log_path.parent.mkdir(parents=True, exist_ok=True)
+        else:
+            log_path, mcap_path = Path(tmp) / 'run.log', Path(tmp) / 'run.mcap'
+        rows: list[dict[str, Any]] | None = None
+        error: str | None = None
+        log_path.write_text(f'{spec.label}: {spec.seeds}, system {system}, ROS_DOMAIN_ID {domain_id}, '
+                            f'host {host}, Ray node {node_id or "-"}\n')
+        with _output_to(log_path):
+            try:
+                rows = run_graph(spec, domain_id, settings, mcap_path if record else None, system)
+            except Exception as exc:  # noqa: BLE001 (a failed run must not stop the others; the log keeps why)
+                traceback.print_exc()
+                error = f'{type(exc).__name__}: {exc}'
+        returned = shared_root is None
+        log = log_path.read_bytes() if returned else None
+        mcap = mcap_path.read_bytes() if returned and mcap_path.exists() else None
+    return RunResult(spec, rows, error, log, mcap, node_id, host, domain_id, time.perf_counter() - t0)
 
 
 # ------------------------------------------------------------------------------------------
@@ -315,20 +526,28 @@ def write_rows(path: Path, rows: Sequence[dict[str, Any]]) -> None:
     os.replace(tmp, path)
 
 
+def _write_bytes(path: Path, data: bytes) -> None:
+    """Write ``data`` atomically (temporary file + rename)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f'.{path.name}.{os.getpid()}.tmp')
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
+
+
 def read_rows(path: Path) -> list[dict[str, str]]:
     """Rows of a CSV written by :func:`write_rows`, as strings."""
     with Path(path).open(newline='') as f:
         return list(csv.DictReader(f))
 
 
-def is_finished(spec: RunSpec, root: Path) -> bool:
-    """Whether ``spec``'s CSV exists (it is written only at the end of a run).
+def is_finished(spec: RunSpec, root: Path, expected_hash: str) -> bool:
+    """Whether ``spec``'s CSV exists (the driver writes it only when the run has ended well).
 
     Raises
     ------
     ValueError
-        If the CSV belongs to another experiment (other seed or iteration count): resuming would
-        mix two configurations in one output directory.
+        If the CSV belongs to another experiment (other iteration count, seed or settings hash):
+        resuming would mix two configurations in one output directory.
     """
     path = spec.path(root, '.csv')
     if not path.exists():
@@ -338,7 +557,12 @@ def is_finished(spec: RunSpec, root: Path) -> bool:
     seeds = {r['seed'] for r in rows}
     if its != spec.iterations or seeds != {str(spec.seed)}:
         raise ValueError(f'{path} holds {its} iterations with seed(s) {sorted(seeds)}, but this experiment '
-                         f'asks for {spec.iterations} iterations with seed {spec.seed}: use another --output')
+                         f'asks for {spec.iterations} iterations with seed {spec.seed}: use another --output '
+                         f'or --force-new')
+    hashes = {r.get('settings_hash') or '<none>' for r in rows}
+    if hashes != {expected_hash}:
+        raise ValueError(f'{path} was made with settings hash {sorted(hashes)}, this experiment has '
+                         f'{expected_hash} (config.json lists the settings): use another --output or --force-new')
     return True
 
 
@@ -353,147 +577,69 @@ def combine_runs(root: Path, runs: Sequence[RunSpec], out: Path) -> int:
     return len(rows)
 
 
-# ------------------------------------------------------------------------------------------
-# Progress
-
-def _duration(seconds: float) -> str:
-    if not math.isfinite(seconds):
-        return '?'
-    s = int(round(seconds))
-    return f'{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}' if s >= 3600 else f'{s // 60}:{s % 60:02d}'
+#: What an experiment writes into its output directory (moved aside together by --force-new).
+_OUTPUTS = ('config.json', 'runs', 'metrics.csv', 'summary.md', 'figures')
 
 
-class Progress:
-    """A plain-text progress bar with ETA on a stream.
+def _move_aside(root: Path) -> Path | None:
+    """Move the earlier results in ``root`` to ``root/previous-<time>``; that directory, or None
+    if there was nothing to move."""
+    present = [root / name for name in _OUTPUTS if (root / name).exists()]
+    if not present:
+        return None
+    aside = root / time.strftime('previous-%Y%m%d-%H%M%S')
+    aside = aside if not aside.exists() else root / f'{aside.name}-{os.getpid()}'
+    aside.mkdir(parents=True)
+    for p in present:
+        p.rename(aside / p.name)
+    return aside
 
-    On a terminal the bar is redrawn in place after every iteration; otherwise one line is printed
-    per finished run (log files stay readable).
 
-    Parameters
-    ----------
-    runs, iterations_per_run : int
-        What this session has to do (runs skipped as already finished are not counted).
-    stream : text stream
-    tty : bool or None
-        Redraw in place; default: ``stream.isatty()``.
-    clock : callable
-        Monotonic seconds (injectable for tests).
+def _check_resume(root: Path, config: ExperimentConfig, settings: Mapping[str, Mapping[str, Any]]) -> None:
+    """Refuse to resume ``root`` if a method with finished runs there had other settings.
+
+    Raises
+    ------
+    ValueError
+        Naming each such method and its differing keys (old -> new).
     """
+    path = root / 'config.json'
+    if not path.exists():
+        return
+    old = json.loads(path.read_text()).get('settings', {})
+    problems = []
+    for method, new in settings.items():
+        if not any((root / 'runs' / method).glob('rep*.csv')):
+            continue
+        if method not in old:
+            problems.append(f'{method}: finished runs but no recorded settings (an older runner)')
+        elif settings_hash(old[method]) != settings_hash(new):
+            problems.append(f'{method}: ' + '; '.join(settings_difference(old[method], new)))
+    if problems:
+        raise ValueError(f'{root} holds finished runs made with other settings:\n  ' + '\n  '.join(problems)
+                         + '\nrerun with the same settings to resume, use another --output, or --force-new '
+                           f'to move the old results to {root}/previous-<time> and start over')
 
-    def __init__(self, runs: int, iterations_per_run: int, stream: TextIO = sys.stderr,
-                 tty: bool | None = None, clock: Callable[[], float] = time.monotonic) -> None:
-        self.runs, self.per_run = runs, iterations_per_run
-        self.stream, self.clock = stream, clock
-        self.tty = stream.isatty() if tty is None else tty
-        self.t0 = clock()
-        self.done_runs = self.failed_runs = 0
-        self.partial: dict[str, int] = {}      # iterations of unfinished runs
-        self.done_iterations = 0
 
-    @property
-    def iterations(self) -> int:
-        return self.done_iterations + sum(self.partial.values())
-
-    def line(self) -> str:
-        total = self.runs * self.per_run
-        elapsed = self.clock() - self.t0
-        rate = self.iterations / elapsed if elapsed > 0 else 0.0
-        eta = (total - self.iterations) / rate if rate > 0 else math.inf
-        frac = self.iterations / total if total else 1.0
-        width = 30
-        bar = '#' * int(frac * width) + '-' * (width - int(frac * width))
-        failed = f', {self.failed_runs} failed' if self.failed_runs else ''
-        return (f'[{bar}] {self.done_runs}/{self.runs} runs{failed}, {self.iterations}/{total} iterations, '
-                f'{rate:.2f} it/s, elapsed {_duration(elapsed)}, ETA {_duration(eta)}')
-
-    def iteration(self, run: str, iteration: int) -> None:
-        """Iteration ``iteration`` of ``run`` finished."""
-        self.partial[run] = iteration
-        if self.tty:
-            self.stream.write('\r' + self.line() + '\x1b[K')
-            self.stream.flush()
-
-    def run_finished(self, run: str, ok: bool = True, note: str = '') -> None:
-        """A run ended (``ok=False``: failed; its iterations still count as spent)."""
-        self.partial.pop(run, None)
-        self.done_iterations += self.per_run
-        self.done_runs += ok
-        self.failed_runs += not ok
-        prefix = '\r' if self.tty else ''
-        status = 'done' if ok else 'FAILED'
-        self.stream.write(f'{prefix}{run}: {status}{" " + note if note else ""}\x1b[K\n' if self.tty else
-                          f'{run}: {status}{" " + note if note else ""} | {self.line()}\n')
-        if self.tty:
-            self.stream.write(self.line())
-        self.stream.flush()
-
-    def close(self) -> None:
-        if self.tty:
-            self.stream.write('\n')
-            self.stream.flush()
+def _write_config(root: Path, config: ExperimentConfig, settings: Mapping[str, Mapping[str, Any]]) -> None:
+    path = root / 'config.json'
+    # Methods of an earlier session not run in this one keep their recorded settings.
+    recorded = json.loads(path.read_text()).get('settings', {}) if path.exists() else {}
+    recorded.update(settings)
+    doc = {**asdict(config), 'output': str(root), 'methods': list(config.methods),
+           'system_overrides': SYSTEMS[config.system],
+           'seeds': [{'repetition': r, 'seed': config.seed_base + r, **asdict(derive_seeds(config.seed_base + r))}
+                     for r in range(config.repetitions)],
+           'settings_hash': {m: settings_hash(s) for m, s in recorded.items()},
+           'settings': recorded}
+    _write_bytes(path, (json.dumps(doc, indent=2, default=str) + '\n').encode())
 
 
 # ------------------------------------------------------------------------------------------
-# Workers
+# Execution on Ray
 
-_WORKER: dict[str, Any] = {}
-
-
-def _init_worker(domain_ids: Any, events: Any) -> None:
-    _WORKER['domain_id'] = domain_ids.get()
-    _WORKER['events'] = events
-
-
-@contextmanager
-def _output_to(path: Path) -> Iterator[None]:
-    """Send this process's stdout and stderr (file descriptors 1 and 2: rcutils logs and
-    PyBullet's C prints included) to ``path``."""
-    sys.stdout.flush()
-    sys.stderr.flush()
-    saved = [os.dup(1), os.dup(2)]
-    with path.open('w') as f:
-        os.dup2(f.fileno(), 1)
-        os.dup2(f.fileno(), 2)
-        try:
-            yield
-        finally:
-            sys.stdout.flush()
-            sys.stderr.flush()
-            for fd, copy in zip((1, 2), saved):
-                os.dup2(copy, fd)
-                os.close(copy)
-
-
-def _run_in_worker(spec: RunSpec, root: str, settings: GraphSettings, record: bool) -> dict[str, Any]:
-    """Worker entry: run ``spec``, write its CSV; returns a short summary."""
-    root_p = Path(root)
-    events = _WORKER.get('events')
-    t0 = time.perf_counter()
-
-    def tick(row: dict[str, Any]) -> None:
-        if events is not None:
-            events.put((spec.label, row['iteration']))
-
-    if _WORKER.get('interrupted'):
-        # Ctrl-C reaches the workers too: runs queued in this worker before it was interrupted end
-        # at once instead of running to completion.
-        raise RunError('not started: the experiment was interrupted')
-    log = spec.path(root_p, '.log')
-    log.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        with _output_to(log):
-            rows = run_graph(spec, _WORKER.get('domain_id', 0), settings,
-                             spec.path(root_p, '.mcap') if record else None, tick)
-    except KeyboardInterrupt:
-        _WORKER['interrupted'] = True
-        raise RunError('interrupted') from None
-    write_rows(spec.path(root_p, '.csv'), rows)
-    last = rows[-1]
-    return {'wall_s': time.perf_counter() - t0, 'position_mm': last['position_mm'],
-            'orientation_deg': last['orientation_deg'], 'movement_deg': last['movement_deg']}
-
-
-def _domain_ids(config: ExperimentConfig) -> list[int]:
+def domain_ids(config: ExperimentConfig) -> list[int]:
+    """The ``jobs`` ROS_DOMAIN_IDs the driver leases to the runs in flight, one each."""
     # 215-232 are valid on Linux (their ports lie above the ephemeral range) and unused by the
     # test suite (1-100); offset by our pid so two experiments on one machine rarely collide.
     if config.domain_base is not None:
@@ -505,24 +651,133 @@ def _domain_ids(config: ExperimentConfig) -> list[int]:
     return [215 + (first + k) % span for k in range(config.jobs)]
 
 
-def run_experiment(config: ExperimentConfig, stream: TextIO = sys.stderr) -> int:
-    """Run every unfinished run of ``config``, combine, plot; returns the number of failed runs."""
+@contextmanager
+def ray_runtime(address: str | None, jobs: int) -> Iterator[None]:
+    """Ray for the experiment: a connection the caller already made, else a local runtime of
+    ``jobs`` CPUs started here (``address`` None) or a connection to the cluster at ``address``;
+    what is started here is shut down on exit."""
+    import ray
+
+    if ray.is_initialized():
+        yield
+        return
+    quiet = {'logging_level': logging.ERROR, 'log_to_driver': False}
+    if address is None:
+        # Runs return small results (rows, a few MB of MCAP): a small object store suffices.
+        ray.init(address='local', num_cpus=jobs, include_dashboard=False,
+                 object_store_memory=256 * 1024**2, **quiet)
+    else:
+        ray.init(address=address, **quiet)
+    try:
+        yield
+    finally:
+        ray.shutdown()
+
+
+@dataclass
+class ExperimentOutcome:
+    """What :func:`run_experiment` did: this session's results (bytes dropped once written) and failures."""
+
+    results: list[RunResult] = field(default_factory=list)
+    failures: list[str] = field(default_factory=list)
+
+
+def _store(result: RunResult, root: Path, run_hash: str) -> None:
+    """Write a finished task's files; the CSV last, and only for a run that ended well."""
+    spec = result.spec
+    if result.log is not None:
+        _write_bytes(spec.path(root, '.log'), result.log)
+    if result.mcap is not None:
+        _write_bytes(spec.path(root, '.mcap'), result.mcap)
+    if result.rows is not None:
+        write_rows(spec.path(root, '.csv'), [{**r, 'settings_hash': run_hash} for r in result.rows])
+
+
+def _run_all(todo: list[RunSpec], config: ExperimentConfig, record: bool, hashes: Mapping[str, str],
+             stream: TextIO) -> ExperimentOutcome:
+    import ray
+    from tqdm import tqdm
+
+    root = Path(config.output)
+    task = ray.remote(num_cpus=1, max_retries=0, scheduling_strategy='SPREAD')(execute_run)
+    shared = str(root.resolve()) if config.shared else None
+    free, waiting = domain_ids(config), deque(todo)
+    in_flight: dict[Any, tuple[RunSpec, int]] = {}
+    outcome = ExperimentOutcome()
+    bar = tqdm(total=len(todo), unit='run', file=stream, disable=None, dynamic_ncols=True)
+    try:
+        while waiting or in_flight:
+            # At most `jobs` runs in flight, each with a domain id no other run in flight holds.
+            while waiting and free:
+                spec, domain = waiting.popleft(), free.pop(0)
+                ref = task.remote(spec, domain, config.graph, config.system, record, shared)
+                in_flight[ref] = (spec, domain)
+            ready, _ = ray.wait(list(in_flight), num_returns=1, timeout=0.5)
+            for ref in ready:
+                spec, domain = in_flight.pop(ref)
+                free.append(domain)
+                try:
+                    result: RunResult = ray.get(ref)
+                except ray.exceptions.RayError as exc:   # the worker or its node died
+                    result = RunResult(spec, None, f'{type(exc).__name__}: {exc}', None, None, '', '', domain, 0.0)
+                _store(result, root, hashes[spec.method])
+                if result.error is not None:
+                    outcome.failures.append(f'{spec.label}: {result.error} (log: {spec.path(root, ".log")})')
+                    note = f'FAILED {result.error[:200]}'
+                else:
+                    last = result.rows[-1]
+                    note = (f"done in {result.wall_s:.0f} s on {result.host}, final {last['position_mm']:.1f} mm / "
+                            f"{last['orientation_deg']:.2f} deg, movement {last['movement_deg']:.0f} deg")
+                outcome.results.append(replace(result, log=None, mcap=None))
+                bar.update(1)
+                tqdm.write(f'{spec.label}: {note}', file=stream)
+    except BaseException:
+        # Ctrl-C (or a failure to write): kill the runs in flight; nothing they did is written.
+        for ref in in_flight:
+            ray.cancel(ref, force=True)
+        bar.close()
+        stream.write(f'experiment: stopped; {len(in_flight)} run(s) in flight cancelled (finished runs are '
+                     'kept, rerun to resume)\n')
+        raise
+    bar.close()
+    return outcome
+
+
+def run_experiment(config: ExperimentConfig, stream: TextIO = sys.stderr) -> ExperimentOutcome:
+    """Run every unfinished run of ``config`` on Ray, combine, plot.
+
+    Raises
+    ------
+    ValueError
+        If the output directory holds finished runs made with other settings (unless
+        ``config.force_new``).
+    """
     root = Path(config.output)
     root.mkdir(parents=True, exist_ok=True)
-    (root / 'config.json').write_text(json.dumps(
-        {**asdict(config), 'output': str(root), 'methods': list(config.methods)}, indent=2) + '\n')
+    settings = {m: run_settings(config, m) for m in config.methods}
+    hashes = {m: settings_hash(s) for m, s in settings.items()}
+    if config.force_new:
+        aside = _move_aside(root)
+        stream.write(f'experiment: --force-new: earlier results moved to {aside}\n' if aside else
+                     f'experiment: --force-new: nothing to move aside in {root}\n')
+    else:
+        _check_resume(root, config, settings)
     runs = plan_runs(config)
-    todo = [s for s in runs if not is_finished(s, root)]
-    stream.write(f'experiment: {len(runs)} runs ({len(config.methods)} methods x {config.repetitions} '
-                 f'repetitions x {config.iterations} iterations) in {root}; {len(runs) - len(todo)} already '
-                 f'finished, {len(todo)} to run with {config.jobs} worker(s)\n')
+    todo = [s for s in runs if not is_finished(s, root, hashes[s.method])]
+    _write_config(root, config, settings)
+    where = config.address or f'a local Ray runtime of {config.jobs} CPUs'
+    stream.write(f'experiment: system {config.system}, {len(runs)} runs ({len(config.methods)} methods x '
+                 f'{config.repetitions} repetitions x {config.iterations} iterations) in {root}; '
+                 f'{len(runs) - len(todo)} already finished, {len(todo)} to run on {where}, '
+                 f'at most {config.jobs} at a time\n')
     record = config.record
     if record and not recorder_available():
         stream.write('experiment: calibration_bringup.recorder_node is not installed; runs are not recorded\n')
         record = False
-    failures: list[str] = []
+    outcome = ExperimentOutcome()
     if todo:
-        failures = _run_all(todo, config, record, stream)
+        with ray_runtime(config.address, config.jobs):
+            outcome = _run_all(todo, config, record, hashes, stream)
     n = combine_runs(root, runs, root / 'metrics.csv')
     stream.write(f'experiment: {n} rows in {root / "metrics.csv"}\n')
     if config.figures and n:
@@ -530,83 +785,52 @@ def run_experiment(config: ExperimentConfig, stream: TextIO = sys.stderr) -> int
 
         outputs = experiment_figures.render(root)
         stream.write(f'experiment: summary {root / "summary.md"}, figures {", ".join(p.name for p in outputs)}\n')
-    for f in failures:
+    for f in outcome.failures:
         stream.write(f'experiment: FAILED {f}\n')
-    return len(failures)
-
-
-def _run_all(todo: list[RunSpec], config: ExperimentConfig, record: bool, stream: TextIO) -> list[str]:
-    root = Path(config.output)
-    ctx = mp.get_context('spawn')
-    ids, events = ctx.Queue(), ctx.Queue()
-    for d in _domain_ids(config):
-        ids.put(d)
-    progress = Progress(len(todo), config.iterations, stream)
-    failures: list[str] = []
-    jobs = min(config.jobs, len(todo))
-    with ProcessPoolExecutor(jobs, mp_context=ctx, initializer=_init_worker, initargs=(ids, events)) as pool:
-        pending: dict[Future, RunSpec] = {
-            pool.submit(_run_in_worker, s, str(root), config.graph, record): s for s in todo}
-        try:
-            while pending:
-                finished, _ = wait(pending, timeout=0.5, return_when=FIRST_COMPLETED)
-                _drain(events, progress)
-                for fut in finished:
-                    spec = pending.pop(fut)
-                    try:
-                        r = fut.result()
-                    except Exception as exc:  # noqa: BLE001 (a failed run must not stop the others)
-                        failures.append(f'{spec.label}: {type(exc).__name__}: {exc} '
-                                        f'(log: {spec.path(root, ".log")})')
-                        progress.run_finished(spec.label, ok=False, note=str(exc)[:200])
-                        continue
-                    progress.run_finished(spec.label, note=(
-                        f"{r['wall_s']:.0f} s, final {r['position_mm']:.1f} mm / {r['orientation_deg']:.2f} deg, "
-                        f"movement {r['movement_deg']:.0f} deg"))
-        except KeyboardInterrupt:
-            progress.close()
-            stream.write('experiment: interrupted; stopping the workers (finished runs are kept, '
-                         'rerun to resume)\n')
-            pool.shutdown(wait=True, cancel_futures=True)
-            raise
-    progress.close()
-    return failures
-
-
-def _drain(events: Any, progress: Progress) -> None:
-    while True:
-        try:
-            label, iteration = events.get_nowait()
-        except queue.Empty:
-            return
-        progress.iteration(label, iteration)
+    return outcome
 
 
 # ------------------------------------------------------------------------------------------
 # CLI
 
-QUICK = {'repetitions': 3, 'iterations': 20, 'output': Path('results/experiment-quick')}
+QUICK = {'repetitions': 3, 'iterations': 20}
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog='experiment', description=__doc__.split('\n\n')[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter,
-                                epilog='Finished runs (their CSV exists) are skipped: rerun the same command to resume.')
+                                epilog='Finished runs (their CSV exists) are skipped: rerun the same command to '
+                                       'resume. Resuming with other settings is refused (see --force-new).')
+    p.add_argument('--system', choices=list(SYSTEMS), default='ours',
+                   help="compared system: 'ours' (the nodes' parameter files) or 'paper' (EKF, C0/eta, "
+                        'a-optimality, DIRECT-L 1000) [ours]')
     p.add_argument('--quick', action='store_true',
                    help=f"preset: {QUICK['repetitions']} repetitions x {QUICK['iterations']} iterations into "
-                        f"{QUICK['output']} (explicit --repetitions/--iterations/--output win)")
+                        'results/experiment-<system>-quick (explicit --repetitions/--iterations/--output win)')
     p.add_argument('--repetitions', type=int, default=None, help='repetitions (seeds) per method [50]')
     p.add_argument('--iterations', type=int, default=None, help='iterations per run [50]')
     p.add_argument('--methods', nargs='+', default=list(METHODS), choices=list(METHODS), metavar='METHOD',
                    help=f'methods to run {list(METHODS)} [all]')
-    p.add_argument('--jobs', type=int, default=2, help='worker processes, one graph each [2]')
-    p.add_argument('--output', type=Path, default=None,
-                   help=f"[results/experiment; with --quick {QUICK['output']}]")
-    p.add_argument('--seed-base', type=int, default=0, help='repetition r uses seed seed_base + r [0]')
+    p.add_argument('--jobs', type=int, default=2,
+                   help='runs in flight at once, one CPU each (and the local runtime\'s CPUs) [2]')
+    p.add_argument('--address', default=None,
+                   help="Ray cluster to submit to: 'auto', 'ray://host:10001' or 'host:6379' "
+                        '[start a local runtime]')
+    out = p.add_mutually_exclusive_group()
+    out.add_argument('--output', type=Path, default=None,
+                     help='output directory, on the driver [results/experiment-<system>[-quick]]')
+    out.add_argument('--shared-output', type=Path, default=None, metavar='PATH',
+                     help='output directory at the same path on every node: runs write their logs and '
+                          'MCAPs there instead of returning them')
+    p.add_argument('--force-new', action='store_true',
+                   help='move earlier results in the output directory to previous-<time>/ and start over')
+    p.add_argument('--seed-base', type=int, default=0,
+                   help='repetition r has seed seed_base + r, from which its robot, guess and selector '
+                        'seeds are spawned [0]')
     p.add_argument('--record', action=argparse.BooleanOptionalAction, default=True,
                    help='record each run (non-image topics) to runs/<method>/repNN.mcap [on]')
     p.add_argument('--domain-base', type=int, default=None,
-                   help='ROS_DOMAIN_ID of worker 0 (worker k: base + k) [215-232, from the pid]')
+                   help='ROS_DOMAIN_IDs base .. base + jobs - 1 leased to the runs in flight [215-232, from the pid]')
     p.add_argument('--no-figures', dest='figures', action='store_false', help='skip figures and summary')
     g = GraphSettings()
     p.add_argument('--image-rate', type=float, default=g.image_rate, help=f'camera rate [Hz, sim] [{g.image_rate}]')
@@ -624,27 +848,35 @@ def config_from_args(argv: Sequence[str] | None = None) -> ExperimentConfig:
     its = a.iterations if a.iterations is not None else (QUICK['iterations'] if a.quick else 50)
     graph = replace(GraphSettings(), image_rate=a.image_rate, image_width=a.image_size[0],
                     image_height=a.image_size[1], max_joint_speed_deg=a.joint_speed)
-    output = a.output if a.output is not None else (QUICK['output'] if a.quick else Path('results/experiment'))
+    output = a.shared_output or a.output or _default_output(a.system, a.quick)
     return ExperimentConfig(repetitions=reps, iterations=its, methods=tuple(dict.fromkeys(a.methods)),
-                            jobs=a.jobs, output=output, seed_base=a.seed_base, record=a.record,
-                            domain_base=a.domain_base, figures=a.figures, graph=graph)
+                            system=a.system, jobs=a.jobs, output=output, seed_base=a.seed_base, record=a.record,
+                            domain_base=a.domain_base, figures=a.figures, graph=graph, address=a.address,
+                            shared=a.shared_output is not None, force_new=a.force_new)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Console entry point ``experiment``."""
+    from tqdm import tqdm
+
     try:
         config = config_from_args(argv)
         t0 = time.monotonic()
-        failed = run_experiment(config)
+        outcome = run_experiment(config)
     except ValueError as exc:
         print(f'experiment: {exc}', file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         return 130
-    print(f'experiment: finished in {_duration(time.monotonic() - t0)}'
+    failed = len(outcome.failures)
+    print(f'experiment: finished in {tqdm.format_interval(time.monotonic() - t0)}'
           f'{f", {failed} run(s) failed (rerun to retry them)" if failed else ""}', file=sys.stderr)
     return 1 if failed else 0
 
 
 if __name__ == '__main__':
-    sys.exit(main())
+    # Ray pickles this module's classes by reference: run them from the importable module, not
+    # from __main__ (which workers cannot import).
+    from calibration_bringup.experiment import main as _main
+
+    sys.exit(_main())

@@ -2,7 +2,7 @@
 
 Usage::
 
-    python -m calibration_bringup.experiment_figures [results/experiment]
+    python -m calibration_bringup.experiment_figures [results/experiment-ours]
 
 Reads ``<dir>/metrics.csv`` (written by :mod:`calibration_bringup.experiment`; if it is missing,
 the per-run CSVs under ``<dir>/runs`` are read instead) and writes:
@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import sys
 import warnings
 from dataclasses import dataclass
@@ -137,11 +138,12 @@ def _pm(values: NDArray[np.float64], digits: int) -> str:
     return f'{v.mean():.{digits}f} +- {v.std():.{digits}f}' if v.size > 1 else f'{v.mean():.{digits}f}'
 
 
-def summary_markdown(data: dict[str, MethodRuns]) -> str:
-    """The summary tables (Markdown): accuracy and movement, then time per iteration."""
+def summary_markdown(data: dict[str, MethodRuns], system: str | None = None) -> str:
+    """The summary tables (Markdown): accuracy and movement, then time per iteration; ``system``
+    (the runner's ``--system``), if known, in the heading."""
     n_runs = {m.n_runs for m in data.values()}
     its = {m.iterations for m in data.values()}
-    lines = ['# Experiment summary', '',
+    lines = [f'# Experiment summary{f" (system: {system})" if system else ""}', '',
              f'{", ".join(data)}; {"/".join(map(str, sorted(n_runs)))} repetitions, '
              f'{"/".join(map(str, sorted(its)))} iterations per run. Mean +- standard deviation over '
              'repetitions of the values after the last iteration; errors averaged over 1000 '
@@ -317,15 +319,17 @@ def render(root: Path, metrics: Path | None = None) -> list[Path]:
         if not source:
             raise FileNotFoundError(f'no {root / "metrics.csv"} and no per-run CSVs under {root / "runs"}')
     data = load_metrics(source)
+    config = root / 'config.json'
+    system = json.loads(config.read_text()).get('system') if config.exists() else None
     summary = root / 'summary.md'
-    summary.write_text(summary_markdown(data))
+    summary.write_text(summary_markdown(data, system))
     return plot_all(data, root / 'figures') + [summary]
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog='experiment_figures', description=__doc__.split('\n\n')[0])
-    p.add_argument('root', nargs='?', type=Path, default=Path('results/experiment'),
-                   help='experiment directory [results/experiment]')
+    p.add_argument('root', nargs='?', type=Path, default=Path('results/experiment-ours'),
+                   help='experiment directory [results/experiment-ours]')
     p.add_argument('--metrics', type=Path, default=None, help='CSV to read [<root>/metrics.csv]')
     a = p.parse_args(argv)
     try:

@@ -2,6 +2,7 @@
 # nothing changed (a stamp file tracks requirements.txt and every package's build files).
 SHELL := /bin/bash
 PYTHON ?= python3
+VIZ ?= 0
 VENV := $(CURDIR)/.venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.setup-stamp
@@ -25,8 +26,8 @@ $(STAMP): requirements.txt $(PKG_BUILD_FILES) scripts/setup.sh scripts/install_d
 test: setup
 	$(PY) -m pytest
 
-demo: setup
-	@bash scripts/demo.sh
+demo: setup   # `make demo VIZ=1`: with the live 3D view in the browser
+	@VIZ=$(VIZ) bash scripts/demo.sh
 
 bench: setup
 	$(PY) -m tools.bench

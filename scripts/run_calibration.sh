@@ -26,6 +26,8 @@ Runs one online calibration of the simulated iCub right arm and records it to MC
   --no-images       do not record the camera images (smaller bag)
   --domain-id N     ROS_DOMAIN_ID of the run (default: random in 100-199, localhost only)
   --timeout SEC     give up after this many wall seconds (default: 60 + 20 per iteration)
+  --viz             serve the live 3D view (calibration_viz) and print its URL
+  --viz-port N      its port (default: 8080)
   -h, --help        this text
 
 Writes DIR/calibration.mcap, DIR/report.md (+ PNG plots, metrics.csv), DIR/model/ (calibrated
@@ -36,7 +38,7 @@ EOF
 
 strategy=al; iterations=50; seed=1; output=results/run; noise=pose_dependent; rtf=1.0; estimator=map
 body_change=""; body_change_at=""
-image_size=320x240; record_images=1; domain_id=""; timeout=""
+image_size=320x240; record_images=1; domain_id=""; timeout=""; viz=0; viz_port=8080
 while [ $# -gt 0 ]; do
   case "$1" in
     --strategy) strategy=$2; shift 2 ;;
@@ -52,6 +54,8 @@ while [ $# -gt 0 ]; do
     --no-images) record_images=0; shift ;;
     --domain-id) domain_id=$2; shift 2 ;;
     --timeout) timeout=$2; shift 2 ;;
+    --viz) viz=1; shift ;;
+    --viz-port) viz_port=$2; shift 2 ;;
     -h|--help) usage; exit 0 ;;
     *) echo "run_calibration: unknown option '$1' (see --help)" >&2; exit 2 ;;
   esac
@@ -66,6 +70,7 @@ case "$estimator" in map|ekf) ;; *) die "--estimator must be map or ekf, got '$e
 [[ "$image_size" =~ ^([0-9]+)x([0-9]+)$ ]] || die "--image-size must look like 640x480, got '$image_size'"
 width=${BASH_REMATCH[1]}; height=${BASH_REMATCH[2]}
 [[ "$rtf" =~ ^[0-9]*\.?[0-9]+$ ]] || die "--rtf must be a non-negative number, got '$rtf'"
+[[ "$viz_port" =~ ^[0-9]+$ ]] && (( viz_port >= 1 && viz_port <= 65535 )) || die "--viz-port must be a port number, got '$viz_port'"
 timeout=${timeout:-$((60 + 20 * iterations))}
 body_change_at=${body_change_at:-$(( (iterations + 1) / 2 + 1 ))}
 [[ "$body_change_at" =~ ^[1-9][0-9]*$ ]] || die "--body-change-at must be a positive integer, got '$body_change_at'"
@@ -102,6 +107,10 @@ for pair in icub_sim_bridge:sim_node marker_detector:detector_node dh_estimator:
             active_selector:selector_node calibration_bringup:recorder_node calibration_bringup:calibration_report; do
   command_of "${pair%%:*}" "${pair##*:}" >/dev/null || die "executable ${pair##*:} of ${pair%%:*} not found"
 done
+if [ "$viz" = 1 ]; then
+  command_of calibration_viz viz_node >/dev/null || die "--viz: executable viz_node of calibration_viz not found"
+  viz_config=$(share_dir calibration_viz)/config
+fi
 
 # --- An isolated graph ----------------------------------------------------------------------
 export ROS_DOMAIN_ID=${domain_id:-$((100 + RANDOM % 100))}
@@ -167,6 +176,10 @@ for ((t = 0; t < 200; t++)); do [ -s "$bag" ] && break; alive recorder || fail r
 start sim icub_sim_bridge sim_node --ros-args --params-file "$config/sim.yaml" \
   -p "perturb_seed:=$seed" -p "real_time_factor:=$rtf" -p "image_width:=$width" -p "image_height:=$height" \
   "${sim_args[@]}"
+if [ "$viz" = 1 ]; then   # latched facts (true table, camera poses, estimate) reach it whenever it starts
+  start viz calibration_viz viz_node --ros-args --params-file "$viz_config/viz.yaml" -p "port:=$viz_port"
+  echo "run_calibration: live 3D view at http://127.0.0.1:$viz_port (open it in a browser)"
+fi
 start detector marker_detector detector_node --ros-args --params-file "$config/detector.yaml"
 start estimator dh_estimator estimator_node --ros-args --params-file "$config/estimator.yaml" \
   -p "initial_seed:=$seed" -p "noise_model:=$noise" -p "estimator:=$estimator" \
@@ -185,7 +198,7 @@ echo_iterations() {   # the selector's one log line per iteration, those not sho
   shown=$(wc -l <<<"$lines")
 }
 while alive selector; do
-  for name in recorder sim detector estimator; do
+  for name in recorder sim detector estimator ${pid[viz]:+viz}; do
     alive "$name" || { wait "${pid[$name]}" && rc=0 || rc=$?; fail "$name" "exited early (status $rc)"; }
   done
   (( SECONDS - wall0 <= timeout )) || fail selector "did not finish $iterations iterations within $timeout s"
@@ -198,7 +211,7 @@ echo_iterations
 wall=$((SECONDS - wall0))
 
 # Estimator before recorder: its export and last messages land first; the recorder then closes the file.
-stop selector sim detector estimator
+stop selector sim detector estimator ${pid[viz]:+viz}
 stop recorder
 echo "run_calibration: finished in ${wall} s; writing the report"
 calibration_cmd=$(command_of calibration_bringup calibration_report)

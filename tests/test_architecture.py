@@ -19,10 +19,10 @@ from calibration_interfaces.parameters import update_tables
 ROOT = Path(__file__).resolve().parents[1]
 SRC = ROOT / 'ros2_ws' / 'src'
 BOTTOM = {'body_schema', 'calibration_interfaces'}
-NODES = {'icub_sim_bridge', 'marker_detector', 'dh_estimator', 'active_selector'}
+NODES = {'icub_sim_bridge', 'marker_detector', 'dh_estimator', 'active_selector', 'calibration_viz'}
 WORKSPACE = BOTTOM | NODES | {'calibration_bringup'}
 #: calibration_bringup modules that run as (or inside) nodes, with the node packages' rule.
-BRINGUP_RUNTIME = ('recorder_node', 'player_node', 'mcap_writer', 'node_settings')
+BRINGUP_RUNTIME = ('recorder_node', 'player_node', 'mcap_writer', 'node_settings', 'tf_recording')
 
 
 def _imports(path: Path) -> set[str]:

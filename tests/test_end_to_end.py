@@ -185,3 +185,47 @@ def test_bag_player_drives_a_fresh_estimator_to_the_online_estimate(run, ros) ->
     ros.spin_until(lambda: est.estimator.counters['updates'] == online.counters['updates'], 10.0,
                    f'{online.counters["updates"]} replayed updates (have {est.estimator.counters})')
     np.testing.assert_allclose(est.estimator.dh, online.online_final_dh, atol=1e-9)
+
+
+def test_bag_holds_the_robot_model_and_a_tf_tree_on_the_sim_clock(run) -> None:
+    """A 3D panel can place the arm: /robot_description, /tf, /tf_static chain root_link to the hand
+    (real and estimated) and to both camera optical frames; log times are /clock times."""
+    from scipy.spatial.transform import Rotation
+
+    from calibration_interfaces import mcap_reader
+
+    out = _ok(run)
+    bag = out / 'calibration.mcap'
+    assert mcap_reader.recording_metadata(bag) == {'log_time': 'sim', 'tf': 'derived'}
+    edges: dict[str, tuple[str, np.ndarray]] = {}
+    clocks, descriptions = [], {}
+    lag_ns = []
+    last_clock = None
+    for topic, t_ns, msg in mcap_reader.read_messages(bag, ['/tf', '/tf_static', '/clock', '/robot_description',
+                                                          '/body_schema/robot_description', '/joint_states']):
+        if topic == '/clock':
+            clock_ns = msg.clock.sec * 10**9 + msg.clock.nanosec
+            assert t_ns == clock_ns
+            clocks.append(clock_ns)
+            last_clock = clock_ns
+        elif topic.endswith('robot_description'):
+            descriptions[topic] = msg.data
+        elif topic == '/joint_states' and last_clock is not None:
+            lag_ns.append(abs(t_ns - (msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec)))
+        elif topic in ('/tf', '/tf_static'):
+            for t in msg.transforms:
+                pose = np.eye(4)
+                r, p = t.transform.rotation, t.transform.translation
+                pose[:3, :3] = Rotation.from_quat([r.x, r.y, r.z, r.w]).as_matrix()
+                pose[:3, 3] = [p.x, p.y, p.z]
+                edges[t.child_frame_id] = (t.header.frame_id, pose)
+    period_ns = int(np.median(np.diff(clocks)))
+    # A joint state is logged at the latest /clock: its own stamp, or the clock period before it.
+    assert lag_ns and max(lag_ns) <= period_ns, (sorted(lag_ns)[-5:], period_ns)
+    assert '<link name="hand">' in descriptions['/robot_description']
+    assert '<link name="estimate/hand">' in descriptions['/body_schema/robot_description']
+    for frame in ('hand', 'estimate/hand', 'left_camera_optical_frame', 'right_camera_optical_frame'):
+        f, hops = frame, 0
+        while f in edges and hops < 100:
+            f, hops = edges[f][0], hops + 1
+        assert f == 'root_link', f'{frame} does not chain to root_link (stops at {f})'

@@ -13,6 +13,7 @@ setup(
         ('share/' + package_name, ['package.xml']),
         (f'share/{package_name}/config', glob('config/*')),
         (f'share/{package_name}/launch', glob('launch/*.launch.py')),
+        (f'share/{package_name}/msg_definitions/tf2_msgs/msg', glob('msg_definitions/tf2_msgs/msg/*.msg')),
     ],
     install_requires=['setuptools'],
     zip_safe=False,

@@ -7,7 +7,10 @@ Each DH link ``H_i = Rz(q_i + offset_i) Tz(d_i) Tx(a_i) Rx(alpha_i)`` becomes th
 * ``<joint>_dh`` (fixed): ``Tz(d_i) Tx(a_i) Rx(alpha_i)`` -> link ``<joint>_frame`` (DH frame i).
 
 The chain hangs from ``root_link`` through a fixed ``base`` transform (H0 times the blocked torso)
-to link ``arm_base``, and ends with an identity fixed joint to the hand link. Geometry is optional:
+to link ``arm_base``, and ends with an identity fixed joint to the hand link. A ``prefix`` names a
+second arm in the same tree (every link and joint but ``root_link``, e.g. ``estimate/``).
+:func:`chain_transforms` gives the same joints as parent -> child transforms (what a robot state
+publisher puts on ``/tf_static`` and ``/tf``), so a URDF and its TF frames cannot disagree. Geometry is optional:
 pass :class:`Visual` lists keyed by link name, and extra rigidly attached links with
 :class:`FixedLink`. The string is plain URDF; nothing here imports a simulator.
 """
@@ -22,8 +25,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
-__all__ = ['Visual', 'FixedLink', 'dh_chain_urdf', 'model_urdf', 'transform_to_xyz_rpy',
-           'xyz_rpy_to_transform']
+__all__ = ['Visual', 'FixedLink', 'FrameTransform', 'dh_chain_urdf', 'chain_transforms', 'model_urdf',
+           'transform_to_xyz_rpy', 'xyz_rpy_to_transform']
 
 
 @dataclass(frozen=True)
@@ -148,11 +151,81 @@ def _dh_fixed(a: float, d: float, alpha: float) -> NDArray[np.float64]:
     return np.array([[1, 0, 0, a], [0, c, -s, 0], [0, s, c, d], [0, 0, 0, 1.0]])
 
 
+@dataclass(frozen=True)
+class FrameTransform:
+    """One URDF joint as a transform: ``parent_T_child`` (4, 4), fixed or at a joint position."""
+
+    parent: str
+    child: str
+    parent_T_child: NDArray[np.float64]
+
+
+def _chain_joints(dh: NDArray[np.float64], names: Sequence[str], base: NDArray[np.float64], root_link: str,
+                  hand_link: str, prefix: str) -> list[tuple[str, str, str, NDArray[np.float64] | None]]:
+    """``(joint, parent, child, transform)`` per URDF joint in chain order; None for revolute."""
+    out: list[tuple[str, str, str, NDArray[np.float64] | None]] = [
+        (f'{prefix}arm_base_fixed', root_link, f'{prefix}arm_base', base)]
+    parent = f'{prefix}arm_base'
+    for j, (a, d, alpha, offset) in zip(names, dh):
+        zero, moving, frame = f'{prefix}{j}_zero', f'{prefix}{j}_link', f'{prefix}{j}_frame'
+        out += [(f'{prefix}{j}_offset', parent, zero, _rz(offset)), (f'{prefix}{j}', zero, moving, None),
+                (f'{prefix}{j}_dh', moving, frame, _dh_fixed(a, d, alpha))]
+        parent = frame
+    out.append((f'{prefix}{hand_link}_fixed', parent, f'{prefix}{hand_link}', np.eye(4)))
+    return out
+
+
+def chain_transforms(dh: ArrayLike, joint_names: Sequence[str], q: ArrayLike | None = None, *,
+                     base: ArrayLike | None = None, root_link: str = 'root_link', hand_link: str = 'hand',
+                     prefix: str = '', extra_links: Sequence[FixedLink] = ()
+                     ) -> tuple[list[FrameTransform], list[FrameTransform]]:
+    """The joints of :func:`dh_chain_urdf`'s URDF as transforms: what goes on TF.
+
+    Parameters
+    ----------
+    dh : array_like, shape (L, 4)
+    joint_names : sequence of str, length L
+    q : array_like, shape (L,), optional
+        Joint positions [rad]; without them no moving transforms are returned.
+    base, root_link, hand_link, prefix, extra_links
+        As for :func:`dh_chain_urdf` (extra links are named with the prefix too).
+
+    Returns
+    -------
+    fixed : list of FrameTransform
+        The fixed joints (``/tf_static``), chain order, then the extra links.
+    moving : list of FrameTransform
+        ``<joint>_zero -> <joint>_link`` = ``Rz(q)`` per revolute joint (``/tf``); empty without q.
+
+    Raises
+    ------
+    ValueError
+        If ``dh`` is not (L, 4) with L names, or ``q`` does not have L finite values.
+    """
+    dh = np.asarray(dh, dtype=float)
+    if dh.ndim != 2 or dh.shape[1] != 4 or dh.shape[0] != len(joint_names):
+        raise ValueError(f'dh must have shape ({len(joint_names)}, 4), got {dh.shape}')
+    qv = None if q is None else np.asarray(q, dtype=float)
+    if qv is not None and (qv.shape != (dh.shape[0],) or not np.all(np.isfinite(qv))):
+        raise ValueError(f'q must be {dh.shape[0]} finite joint positions, got {np.ravel(qv).tolist()}')
+    base_t = np.eye(4) if base is None else np.asarray(base, dtype=float)
+    fixed, moving = [], []
+    for i, (_joint, parent, child, t) in enumerate(_chain_joints(dh, joint_names, base_t, root_link,
+                                                                  hand_link, prefix)):
+        if t is not None:
+            fixed.append(FrameTransform(parent, child, t))
+        elif qv is not None:
+            moving.append(FrameTransform(parent, child, _rz(qv[(i - 1) // 3])))
+    fixed += [FrameTransform(f'{prefix}{e.parent}' if e.parent != root_link else root_link, f'{prefix}{e.name}',
+                             np.asarray(e.parent_T_link, dtype=float)) for e in extra_links]
+    return fixed, moving
+
+
 def dh_chain_urdf(dh: ArrayLike, joint_names: Sequence[str], limits: ArrayLike, *,
                   base: ArrayLike | None = None, name: str = 'arm', root_link: str = 'root_link',
                   hand_link: str = 'hand', visuals: Mapping[str, Sequence[Visual]] | None = None,
                   extra_links: Sequence[FixedLink] = (), velocity: float = 1.0,
-                  effort: float = 10.0, link_mass: float = 0.0) -> str:
+                  effort: float = 10.0, link_mass: float = 0.0, prefix: str = '') -> str:
     """URDF text of a standard-DH serial chain.
 
     Parameters
@@ -177,6 +250,9 @@ def dh_chain_urdf(dh: ArrayLike, joint_names: Sequence[str], limits: ArrayLike, 
         Written into every ``<limit>`` [rad/s, N m].
     link_mass : float
         If positive, every link gets this mass and a tiny inertia.
+    prefix : str
+        Prepended to every link and joint name except ``root_link`` (``visuals`` keys and the
+        extra links' names and parents are given without it).
 
     Returns
     -------
@@ -207,34 +283,30 @@ def dh_chain_urdf(dh: ArrayLike, joint_names: Sequence[str], limits: ArrayLike, 
     visuals = dict(visuals or {})
     counter = [0]
 
-    links: list[str] = [root_link, 'arm_base']
+    visuals = {(k if k == root_link else f'{prefix}{k}'): v for k, v in visuals.items()}
+    links: list[str] = [root_link]
     xml = [f'<?xml version="1.0"?>\n<robot name={quoteattr(name)}>\n']
     xml.append(_link_xml(root_link, visuals.get(root_link, ()), counter, link_mass))
-    xml.append(_link_xml('arm_base', visuals.get('arm_base', ()), counter, link_mass))
-    xml.append(_fixed_xml('arm_base_fixed', root_link, 'arm_base', base_t))
-    parent = 'arm_base'
-    for j, (a, d, alpha, offset), (lo, hi) in zip(names, dh, limits):
-        zero, moving, frame = f'{j}_zero', f'{j}_link', f'{j}_frame'
-        links += [zero, moving, frame]
-        for ln in (zero, moving, frame):
-            xml.append(_link_xml(ln, visuals.get(ln, ()), counter, link_mass))
-        xml.append(_fixed_xml(f'{j}_offset', parent, zero, _rz(offset)))
-        xml.append(f'  <joint name={quoteattr(j)} type="revolute">\n    <parent link={quoteattr(zero)}/>'
-                   f'\n    <child link={quoteattr(moving)}/>\n    <origin xyz="0 0 0" rpy="0 0 0"/>\n'
+    limit_rows = iter(limits)
+    for joint, parent, child, t in _chain_joints(dh, names, base_t, root_link, hand_link, prefix):
+        links.append(child)
+        xml.append(_link_xml(child, visuals.get(child, ()), counter, link_mass))
+        if t is not None:
+            xml.append(_fixed_xml(joint, parent, child, t))
+            continue
+        lo, hi = next(limit_rows)
+        xml.append(f'  <joint name={quoteattr(joint)} type="revolute">\n    <parent link={quoteattr(parent)}/>'
+                   f'\n    <child link={quoteattr(child)}/>\n    <origin xyz="0 0 0" rpy="0 0 0"/>\n'
                    f'    <axis xyz="0 0 1"/>\n    <limit lower="{_num(lo)}" upper="{_num(hi)}" '
                    f'effort="{_num(effort)}" velocity="{_num(velocity)}"/>\n  </joint>\n')
-        xml.append(_fixed_xml(f'{j}_dh', moving, frame, _dh_fixed(a, d, alpha)))
-        parent = frame
-    links.append(hand_link)
-    xml.append(_link_xml(hand_link, visuals.get(hand_link, ()), counter, link_mass))
-    xml.append(_fixed_xml(f'{hand_link}_fixed', parent, hand_link, np.eye(4)))
     for extra in extra_links:
-        if extra.parent not in links:
+        child = f'{prefix}{extra.name}'
+        parent = extra.parent if extra.parent == root_link else f'{prefix}{extra.parent}'
+        if parent not in links:
             raise ValueError(f'extra link {extra.name!r}: unknown parent {extra.parent!r}')
-        links.append(extra.name)
-        xml.append(_link_xml(extra.name, list(visuals.get(extra.name, ())) + list(extra.visuals),
-                             counter, link_mass))
-        xml.append(_fixed_xml(f'{extra.name}_fixed', extra.parent, extra.name, extra.parent_T_link))
+        links.append(child)
+        xml.append(_link_xml(child, list(visuals.get(child, ())) + list(extra.visuals), counter, link_mass))
+        xml.append(_fixed_xml(f'{child}_fixed', parent, child, extra.parent_T_link))
     if len(set(links)) != len(links):
         dup = sorted({ln for ln in links if links.count(ln) > 1})
         raise ValueError(f'duplicate link names {dup}; rename the joints or extra links')

@@ -95,3 +95,28 @@ def test_visual_validation() -> None:
         Visual('box', (0.1, 0.1))
     with pytest.raises(ValueError, match='shape must be'):
         Visual('cone', (0.1,))
+
+
+def test_chain_transforms_are_the_urdf_joints_and_compose_to_the_hand_pose() -> None:
+    """TF frames and URDF cannot disagree: same parent/child pairs; root -> hand = FK (prefixed too)."""
+    from body_schema.urdf import chain_transforms
+
+    robot = load_robot()
+    rng = np.random.default_rng(4)
+    dh = robot.dh + rng.normal(0, 0.01, robot.dh.shape)
+    q = rng.uniform(robot.limits[:, 0], robot.limits[:, 1])
+    for prefix in ('', 'estimate/'):
+        fixed, moving = chain_transforms(dh, robot.joint_names, q, base=robot.base, prefix=prefix)
+        urdf = ET.fromstring(dh_chain_urdf(dh, robot.joint_names, robot.limits, base=robot.base, prefix=prefix))
+        pairs = {(j.find('parent').get('link'), j.find('child').get('link')) for j in urdf.iter('joint')}
+        assert pairs == {(t.parent, t.child) for t in fixed + moving}
+        assert len(moving) == robot.n_joints
+        edges = {t.child: t for t in fixed + moving}
+        frame, pose = f'{prefix}hand', np.eye(4)
+        while frame in edges:
+            pose = edges[frame].parent_T_child @ pose
+            frame = edges[frame].parent
+        assert frame == 'root_link'
+        np.testing.assert_allclose(pose, robot.with_dh(dh).forward_kinematics(q), atol=1e-12)
+    with pytest.raises(ValueError, match='7 finite joint positions'):
+        chain_transforms(dh, robot.joint_names, q[:6])

@@ -225,7 +225,8 @@ class InProcessGraph:
         path.parent.mkdir(parents=True, exist_ok=True)
         topics = [t.name for t in CONTRACT if t.name not in IMAGE_TOPICS and not t.name.startswith('/camera/right/')]
         return RecorderNode(context=self.context, start_parameter_services=parameter_services, parameter_overrides=[
-            Parameter('output', value=str(path)), Parameter('topics', value=topics)])
+            Parameter('output', value=str(path)), Parameter('topics', value=topics),
+            Parameter('use_sim_time', value=True)])   # log times on the sim clock, like the stamps
 
     def _add(self, key: str, node: Any, timed: bool = True) -> Any:
         self.nodes[key] = node

@@ -51,6 +51,12 @@ class DefinitionNotFoundError(LookupError):
     """No ``.msg`` or ``.idl`` file for a type in any package share directory."""
 
 
+#: Interface packages whose standard definitions this package carries (share/calibration_bringup/
+#: msg_definitions/<pkg>) for topics it records without their Python types installed:
+#: tf2_msgs (/tf, /tf_static) has no wheel (docs/architecture.md, "TF and robot model").
+CARRIED_DEFINITIONS = ('tf2_msgs',)
+
+
 def _default_share(package: str) -> str:
     # ament_index_python is plain Python (no rclpy); imported lazily so tests can inject shares.
     from ament_index_python.packages import PackageNotFoundError, get_package_share_directory
@@ -58,6 +64,8 @@ def _default_share(package: str) -> str:
     try:
         return get_package_share_directory(package)
     except PackageNotFoundError as exc:
+        if package in CARRIED_DEFINITIONS:   # an installed package (a full ROS 2 install) comes first
+            return str(Path(get_package_share_directory('calibration_bringup')) / 'msg_definitions' / package)
         raise DefinitionNotFoundError(f'package {package!r} is not in the ament index '
                                       f'(AMENT_PREFIX_PATH)') from exc
 
@@ -313,6 +321,17 @@ class McapBagWriter:
         self.types[topic] = type_name
         self.counts[topic] = 0
         return cid
+
+    def add_metadata(self, name: str, data: dict[str, str]) -> None:
+        """Write an MCAP metadata record ``name`` (string keys and values), e.g. how log times were taken.
+
+        Raises
+        ------
+        ValueError
+            If the file is closed.
+        """
+        self._check_open()
+        self._writer.add_metadata(name, {str(k): str(v) for k, v in data.items()})
 
     def write(self, topic: str, data: bytes, log_time_ns: int, publish_time_ns: int | None = None,
               sequence: int = 0) -> None:

@@ -33,6 +33,9 @@ class RecorderSettings:
                                   (0.0, 3600.0))
     discovery_period: float = setting(0.5, 'Period of the check for new publishers [s]', (0.01, 60.0))
     queue_depth: int = setting(100, 'Subscription queue depth (keep last)', (1, 100000))
+    record_tf: bool = setting(True, 'Also write /tf and /tf_static, derived from /joint_states, /body_schema/true, '
+                                    '/body_schema/estimate and the camera poses (tf_recording.py)')
+    robot: str = setting('icub_right_arm', 'Robot description of the TF frames: packaged name or YAML path')
 
 
 @dataclass(frozen=True)

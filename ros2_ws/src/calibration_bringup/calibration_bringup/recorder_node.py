@@ -3,7 +3,16 @@
 The file opens in ``ros2 bag play FILE.mcap``, the ``mcap`` and ``rosbags`` libraries and
 Foxglove (format: :mod:`calibration_bringup.mcap_writer`). Messages are taken raw (the CDR bytes
 as received) and written with their receive time as log time and the publisher's source
-timestamp as publish time.
+timestamp as publish time. With ``use_sim_time`` (as ``ros2 bag record --use-sim-time``; the
+launcher's ``config/recorder.yaml`` sets it) the receive time is read on the simulation clock, so
+log times and ``header.stamp`` agree (log time = the latest ``/clock`` received, plus a nanosecond
+per message already logged in that tick so that log-time order is arrival order; a ``/clock``
+message is logged at its own time). The
+file's ``recording`` metadata says which clock it is (``log_time: sim`` or ``system``).
+
+With ``record_tf`` the recorder also writes ``/tf`` and ``/tf_static`` (tf2_msgs/msg/TFMessage)
+computed from what it records, as a robot state publisher would publish them
+(:mod:`calibration_bringup.tf_recording`; there is no tf2_msgs wheel to publish them with).
 
 Contract topics are subscribed at start with the contract's QoS, so nothing published before
 discovery notices a new publisher is lost; other topics are subscribed when they have publishers
@@ -44,6 +53,13 @@ discovery_period : float
     Seconds between checks for new publishers.
 queue_depth : int
     Subscription queue depth (keep last).
+record_tf : bool
+    Write ``/tf`` and ``/tf_static`` derived from the joint states, the real and estimated DH
+    tables and the camera poses.
+robot : str
+    Robot description of those frames (packaged name or YAML path).
+use_sim_time : bool
+    Log times on ``/clock`` (the standard parameter of every node).
 """
 from __future__ import annotations
 
@@ -53,19 +69,30 @@ import time
 from pathlib import Path
 from typing import Any
 
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.logging import get_logger
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile,
                        ReliabilityPolicy)
+from rclpy.serialization import deserialize_message
+from geometry_msgs.msg import PoseStamped
+from rosgraph_msgs.msg import Clock as ClockMsg
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
+
+from body_schema.robot import load_robot
 
 from calibration_interfaces.contract import BY_NAME, IMAGE_TOPICS, ContractTopic
 from calibration_interfaces.mcap_reader import QosOffer
-from calibration_interfaces.node_util import declare_settings, message_class, qos_profile
+from calibration_interfaces.messages import MessageFormatError, msg_to_table, pose_msg_to_matrix
+from calibration_interfaces.node_util import WarnOnce, declare_settings, message_class, qos_profile, spin_node
 
 from .mcap_writer import McapBagWriter
 from .node_settings import RecorderSettings
+from .tf_recording import TF_STATIC_TOPIC, TF_TOPIC, TF_TYPE, TfBook, TfRecord
+
+#: What a tf2 broadcaster offers: /tf a reliable stream, /tf_static latched (depth 1).
+_TF_QOS = {TF_TOPIC: QosOffer('keep_last', 100, 'reliable', 'volatile'),
+           TF_STATIC_TOPIC: QosOffer('keep_last', 1, 'reliable', 'transient_local')}
 
 
 def qos_offer(profile: QoSProfile) -> QosOffer:
@@ -89,6 +116,10 @@ def request_qos(offers: list[QoSProfile], depth: int) -> QoSProfile:
     return QoSProfile(depth=depth,
                       reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
                       durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
+
+
+def _stamp_ns(stamp: Any) -> int:
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
 
 
 class RecorderNode(Node):
@@ -122,6 +153,13 @@ class RecorderNode(Node):
         self._subs_by_topic: dict[str, Any] = {}
         self._early: dict[str, tuple[Any, QoSProfile]] = {}
         self._closed = False
+        self._warn = WarnOnce(self)
+        self._sim_time = bool(self.get_parameter('use_sim_time').value)
+        self._clock_ns = 0
+        self._last_log_ns = -1
+        self._writer.add_metadata('recording', {'log_time': 'sim' if self._sim_time else 'system',
+                                                'tf': 'derived' if s.record_tf else 'none'})
+        self._tf = TfBook(load_robot(s.robot)) if s.record_tf else None
         for topic in self.wanted:
             if topic in BY_NAME:
                 self._subscribe_early(BY_NAME[topic])
@@ -217,10 +255,42 @@ class RecorderNode(Node):
             return
         if not self._writer.has_channel(topic):     # early subscription, before discovery saw the publisher
             self._add_channel(topic, BY_NAME[topic].type, self.get_publishers_info_by_topic(topic))
-        # rmw's reception time when it has one (Fast DDS does), else now; both are system time.
-        log_time = info.get('received_timestamp') or time.time_ns()
+        if self._sim_time:
+            # The latest /clock among the recorded messages: the node's own clock (its time
+            # source's subscription) ran 40-320 ms behind or ahead of the recorded streams.
+            if topic == '/clock':
+                self._clock_ns = _stamp_ns(deserialize_message(data, ClockMsg).clock)
+            now = self._clock_ns if '/clock' in self.wanted else self.get_clock().now().nanoseconds
+            # One nanosecond apart within a clock tick: log-time order stays arrival order, which
+            # the offline evaluation replays (a progress record after the update it reports).
+            log_time = self._last_log_ns = max(now, self._last_log_ns + 1)
+        else:
+            # rmw's reception time when it has one (Fast DDS does), else now; both are system time.
+            log_time = info.get('received_timestamp') or time.time_ns()
         self._writer.write(topic, data, log_time, info.get('source_timestamp') or log_time,
                            info.get('publication_sequence_number') or 0)
+        if self._tf is not None:
+            for record in self._derive_tf(topic, data, log_time):
+                if not self._writer.has_channel(record.topic):
+                    self._writer.add_channel(record.topic, TF_TYPE, [_TF_QOS[record.topic]])
+                self._writer.write(record.topic, record.data, record.log_time_ns)
+
+    def _derive_tf(self, topic: str, data: bytes, log_time: int) -> list[TfRecord]:
+        """Feed the TF book from a recorded message; the TF records it makes due."""
+        try:
+            if topic == '/joint_states':
+                js = deserialize_message(data, JointState)
+                return self._tf.on_joint_state(js.name, js.position, _stamp_ns(js.header.stamp), log_time)
+            if topic == '/body_schema/true':
+                self._tf.set_true(msg_to_table(deserialize_message(data, Float64MultiArray), self._tf.model.n_joints))
+            elif topic == '/body_schema/estimate':
+                self._tf.set_estimate(msg_to_table(deserialize_message(data, Float64MultiArray),
+                                                   self._tf.model.n_joints))
+            elif topic.startswith('/camera/') and topic.endswith('/pose'):
+                self._tf.set_camera(topic.split('/')[2], pose_msg_to_matrix(deserialize_message(data, PoseStamped).pose))
+        except (MessageFormatError, ValueError) as exc:
+            self._warn(topic, f'no TF from {topic}: {exc}')
+        return []
 
     def close(self) -> None:
         """Stop recording and finish the file (idempotent)."""
@@ -249,17 +319,7 @@ class RecorderNode(Node):
 def main(args: list[str] | None = None) -> None:
     # rclpy installs SIGINT and SIGTERM handlers that shut the context down: spin() then raises
     # ExternalShutdownException (or KeyboardInterrupt) and destroy_node() finishes the file.
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = RecorderNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    spin_node(RecorderNode, args)
 
 
 if __name__ == '__main__':

@@ -169,3 +169,17 @@ def test_torn_file_reads_up_to_its_last_complete_chunk(tmp_path: Path) -> None:
     assert 50 < len(got) < 100
     assert got == [f'{i:04d}' + 'x' * 300 for i in range(len(got))]   # a prefix, nothing garbled
     assert s.message_count == len(got) and s.topics['/chatter'].type == 'std_msgs/msg/String'
+
+
+def test_recording_metadata_says_which_clock_and_old_bags_read_as_system_time(tmp_path: Path) -> None:
+    new, old = tmp_path / 'new.mcap', tmp_path / 'old.mcap'
+    with McapBagWriter(new) as w:
+        w.add_metadata('recording', {'log_time': 'sim', 'tf': 'derived'})
+    with McapBagWriter(old):
+        pass
+    assert bag.recording_metadata(new) == {'log_time': 'sim', 'tf': 'derived'}
+    assert bag.recording_metadata(old) == {'log_time': 'system', 'tf': 'none'}
+    w = McapBagWriter(tmp_path / 'closed.mcap')
+    w.close()
+    with pytest.raises(ValueError, match='closed'):
+        w.add_metadata('recording', {'log_time': 'sim'})

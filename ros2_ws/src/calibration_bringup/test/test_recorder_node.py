@@ -26,7 +26,9 @@ N = 20
 
 
 def _recorder(ros: Any, path: Path, **params: Any) -> RecorderNode:
-    overrides = [Parameter(k, value=v) for k, v in {'output': str(path), 'discovery_period': 0.1, **params}.items()]
+    # TF is derived from the iCub's topics; these tests publish other data (test_tf_recording.py covers TF).
+    overrides = [Parameter(k, value=v) for k, v in {'output': str(path), 'discovery_period': 0.1,
+                                                    'record_tf': False, **params}.items()]
     return ros.add(RecorderNode(context=ros.context, parameter_overrides=overrides))
 
 

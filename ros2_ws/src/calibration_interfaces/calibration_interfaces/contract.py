@@ -11,7 +11,7 @@ import enum
 from dataclasses import dataclass
 
 __all__ = ['Reliability', 'Durability', 'QosSpec', 'SENSOR', 'RELIABLE', 'LATCHED', 'HISTORY', 'ContractTopic',
-           'CONTRACT', 'BY_NAME', 'IMAGE_TOPICS', 'topic']
+           'CONTRACT', 'BY_NAME', 'IMAGE_TOPICS', 'topic', 'ESTIMATE_FRAME_PREFIX', 'optical_frame']
 
 
 class Reliability(enum.StrEnum):
@@ -110,6 +110,9 @@ CONTRACT: tuple[ContractTopic, ...] = (
     ContractTopic('/body_schema/estimate', 'std_msgs/msg/Float64MultiArray', LATCHED),
     ContractTopic('/body_schema/covariance', 'std_msgs/msg/Float64MultiArray', LATCHED),
     ContractTopic('/body_schema/true', 'std_msgs/msg/Float64MultiArray', LATCHED),
+    # URDFs for 3D views: the real arm (sim) and the estimate (estimator; links under 'estimate/').
+    ContractTopic('/robot_description', 'std_msgs/msg/String', LATCHED),
+    ContractTopic('/body_schema/robot_description', 'std_msgs/msg/String', LATCHED),
     # The estimator's per-attempt outcome (keys: calibration_interfaces.outcome.StatusKey) and
     # the selector's per-iteration record (JSON), which the offline evaluation aligns on.
     ContractTopic('/body_schema/update_status', 'diagnostic_msgs/msg/DiagnosticStatus', HISTORY),
@@ -117,6 +120,15 @@ CONTRACT: tuple[ContractTopic, ...] = (
 )
 
 BY_NAME: dict[str, ContractTopic] = {t.name: t for t in CONTRACT}
+
+#: TF frame (and URDF link) prefix of the estimated arm: ``estimate/arm_base`` ... ``estimate/hand``
+#: hang from the real arm's ``root_link``, so a 3D view draws the estimate as a second arm.
+ESTIMATE_FRAME_PREFIX = 'estimate/'
+
+
+def optical_frame(eye: str) -> str:
+    """The optical frame of camera ``eye`` (z forward, x right, y down): images' ``frame_id``."""
+    return f'{eye}_camera_optical_frame'
 
 #: Topics whose bandwidth dominates a bag; experiments leave them out.
 IMAGE_TOPICS: tuple[str, ...] = tuple(t.name for t in CONTRACT if t.name.endswith('/image_raw'))

@@ -247,6 +247,23 @@ def summary(path: str | os.PathLike[str]) -> BagSummary:
                           complete=finished, damage=scan.damage)
 
 
+def recording_metadata(path: str | os.PathLike[str]) -> dict[str, str]:
+    """The recorder's ``recording`` metadata: ``log_time`` (``sim`` or ``system``) and ``tf``.
+
+    A bag written before the recorder wrote it (or by another tool) says nothing: its log times
+    are system time, as rosbag2's without ``--use-sim-time``; that default is returned.
+    """
+    out = {'log_time': 'system', 'tf': 'none'}
+    with open(path, 'rb') as f:
+        try:
+            for record in SeekingReader(f).iter_metadata():
+                if record.name == 'recording':
+                    out.update(record.metadata)
+        except McapError:
+            pass   # a killed recording has no metadata index: say what an old bag says
+    return out
+
+
 def _iter(path: Path, topics: Iterable[str] | None,
           start_ns: int | None) -> Iterator[tuple[Schema | None, Channel, Message]]:
     wanted = None if topics is None else set(topics)

@@ -4,16 +4,19 @@
 * :func:`descriptor` and :func:`declare_settings`: parameters declared from a settings dataclass
   (:mod:`calibration_interfaces.parameters`);
 * :class:`WarnOnce`: a warning logged once per key;
-* :func:`message_class`.
+* :func:`message_class`;
+* :func:`spin_node`: a node's ``main``.
 """
 from __future__ import annotations
 
 import importlib
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+import rclpy
 from rclpy.exceptions import ParameterUninitializedException
+from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -21,7 +24,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from .contract import Durability, QosSpec, Reliability, topic
 from .parameters import ParameterSpec, parameter_specs, settings_from_parameters
 
-__all__ = ['qos_profile', 'descriptor', 'declare_settings', 'WarnOnce', 'message_class']
+__all__ = ['qos_profile', 'descriptor', 'declare_settings', 'WarnOnce', 'message_class', 'spin_node']
 
 
 def qos_profile(spec: QosSpec | str, depth: int | None = None) -> QoSProfile:
@@ -138,3 +141,22 @@ def message_class(type_name: str) -> type:
         return getattr(importlib.import_module(f'{pkg}.msg'), name)
     except (ImportError, AttributeError) as exc:
         raise ImportError(f'message type {type_name!r} is not installed: {exc}') from exc
+
+
+def spin_node(make_node: Callable[[], Node], args: list[str] | None = None) -> None:
+    """A node executable's ``main``: init, spin until Ctrl-C or shutdown, destroy the node, shut down.
+
+    SIGINT and SIGTERM end the spin (rclpy's handlers shut the context down); ``destroy_node``
+    then runs, so a node can finish its files or close its servers there.
+    """
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = make_node()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()

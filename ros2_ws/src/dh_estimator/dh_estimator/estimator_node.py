@@ -21,6 +21,9 @@ Publications
     7 x 4 DH table (a, d, alpha, offset), after every attempt.
 /body_schema/covariance : std_msgs/Float64MultiArray (reliable, transient local)
     28 x 28 covariance, row-major, same order.
+/body_schema/robot_description : std_msgs/String (reliable, transient local)
+    URDF of the estimated arm, links under ``estimate/`` (a translucent orange ghost in a 3D
+    view), with every estimate.
 /body_schema/update_status : diagnostic_msgs/DiagnosticStatus (reliable)
     One per attempt, values keyed by :class:`calibration_interfaces.outcome.StatusKey`: outcome
     (accepted / outlier / rejected / moving / invalid), image stamp, joints, Mahalanobis distance,
@@ -46,21 +49,20 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import rclpy
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseWithCovarianceStamped
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64MultiArray
+from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
 from body_schema import load_robot, sampling
-from calibration_interfaces.contract import RELIABLE, SENSOR
+from body_schema.arm_visuals import description_urdf
+from calibration_interfaces.contract import ESTIMATE_FRAME_PREFIX, RELIABLE, SENSOR
 from calibration_interfaces.dh_file import read_dh_file
 from calibration_interfaces.messages import covariance_to_msg, table_to_msg
-from calibration_interfaces.node_util import WarnOnce, declare_settings, qos_profile
+from calibration_interfaces.node_util import WarnOnce, declare_settings, qos_profile, spin_node
 from calibration_interfaces.noise import NoiseSettings
 from calibration_interfaces.outcome import Outcome, encode_status
 
@@ -70,6 +72,10 @@ from .pairing import MessageError, MessageFeeder, ObservationPairer, Observation
 
 # Best effort matches any publisher; the deep queue keeps the rest window intact under bursts.
 JOINT_STATES_QOS = qos_profile(SENSOR, depth=200)
+
+
+#: The estimated arm's colour in a 3D view: translucent orange over the real (white) arm.
+GHOST_RGBA = (1.0, 0.55, 0.1, 0.45)
 
 
 class EstimatorNode(Node):
@@ -102,6 +108,8 @@ class EstimatorNode(Node):
                                                   qos_profile('/body_schema/estimate'))
         self.pub_cov = self.create_publisher(Float64MultiArray, '/body_schema/covariance',
                                              qos_profile('/body_schema/covariance'))
+        self.pub_description = self.create_publisher(String, '/body_schema/robot_description',
+                                                     qos_profile('/body_schema/robot_description'))
         self.pub_status = self.create_publisher(DiagnosticStatus, '/body_schema/update_status',
                                                 qos_profile('/body_schema/update_status'))
         self.create_subscription(JointState, '/joint_states', self.on_joint_state, JOINT_STATES_QOS)
@@ -170,6 +178,8 @@ class EstimatorNode(Node):
     def publish_estimate(self) -> None:
         self.pub_estimate.publish(table_to_msg(self.estimator.dh))
         self.pub_cov.publish(covariance_to_msg(self.estimator.P))
+        self.pub_description.publish(String(data=description_urdf(
+            self.model, self.estimator.dh, prefix=ESTIMATE_FRAME_PREFIX, rgba=GHOST_RGBA)))
 
     def on_export(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         if self.export_dir is None:
@@ -190,17 +200,7 @@ class EstimatorNode(Node):
 
 
 def main(args: list[str] | None = None) -> None:
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = EstimatorNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    spin_node(EstimatorNode, args)
 
 
 if __name__ == '__main__':

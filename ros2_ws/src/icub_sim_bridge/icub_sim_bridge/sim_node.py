@@ -18,6 +18,9 @@ Topics published
 /body_schema/true : std_msgs/Float64MultiArray
     The simulated robot's real DH table, 7 x 4 (a, d, alpha, offset); transient local;
     published again when the body changes.
+/robot_description : std_msgs/String
+    URDF of the real arm (links as :func:`body_schema.urdf.chain_transforms` names the TF
+    frames, the simulator's geometry); transient local; published again when the body changes.
 
 Topics subscribed
 -----------------
@@ -46,25 +49,24 @@ import time
 from typing import Any
 
 import numpy as np
-import rclpy
 from builtin_interfaces.msg import Time as TimeMsg
 from geometry_msgs.msg import PoseStamped
 from rclpy.clock import Clock, ClockType
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import CameraInfo, Image, JointState
-from std_msgs.msg import Float64MultiArray
+from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
+from body_schema.arm_visuals import description_urdf
 from body_schema.robot import load_robot
 from body_schema.sampling import perturb_dh
-from calibration_interfaces.contract import RELIABLE
+from calibration_interfaces.contract import RELIABLE, optical_frame
 from calibration_interfaces.dh_file import read_dh_file
 from calibration_interfaces.messages import matrix_to_pose_msg, table_to_msg
-from calibration_interfaces.node_util import declare_settings, qos_profile
+from calibration_interfaces.node_util import declare_settings, qos_profile, spin_node
 
 from .body_change import parse_body_change
 from .camera import degrade
@@ -144,6 +146,7 @@ class SimNode(Node):
         self.pub_clock = self.create_publisher(ClockMsg, '/clock', qos_profile('/clock'))
         self.pub_js = self.create_publisher(JointState, '/joint_states', qos_profile('/joint_states'))
         self.pub_true = self.create_publisher(Float64MultiArray, '/body_schema/true', qos_profile('/body_schema/true'))
+        self.pub_description = self.create_publisher(String, '/robot_description', qos_profile('/robot_description'))
         self.pub_img, self.pub_info, self.pub_pose = {}, {}, {}
         for eye in self.cameras:
             for pubs, cls, suffix in ((self.pub_img, Image, 'image_raw'), (self.pub_info, CameraInfo, 'camera_info'),
@@ -167,8 +170,12 @@ class SimNode(Node):
     # ------------------------------------------------------------------------------------------
     # Messages
 
-    def _publish_latched(self) -> None:
+    def _publish_real_arm(self) -> None:
         self.pub_true.publish(table_to_msg(self.true_dh))
+        self.pub_description.publish(String(data=description_urdf(self.robot, self.true_dh)))
+
+    def _publish_latched(self) -> None:
+        self._publish_real_arm()
         for eye, pose in self.cameras.items():
             ps = PoseStamped(pose=matrix_to_pose_msg(pose))
             ps.header.frame_id = self.robot.root_frame
@@ -177,7 +184,7 @@ class SimNode(Node):
     def _camera_info(self, eye: str, stamp: TimeMsg) -> CameraInfo:
         k = self.intrinsics
         info = CameraInfo()
-        info.header.stamp, info.header.frame_id = stamp, f'{eye}_camera_optical_frame'
+        info.header.stamp, info.header.frame_id = stamp, optical_frame(eye)
         info.width, info.height = k.width, k.height
         info.distortion_model = 'plumb_bob'
         info.d = [0.0] * 5
@@ -192,7 +199,7 @@ class SimNode(Node):
             rgb = self.world.render(pose, self.intrinsics, supersample=self._supersample)
             rgb = degrade(rgb, self._noise_std, self._blur, self._rng)
             img = Image()
-            img.header.stamp, img.header.frame_id = stamp, f'{eye}_camera_optical_frame'
+            img.header.stamp, img.header.frame_id = stamp, optical_frame(eye)
             img.height, img.width = rgb.shape[:2]
             img.encoding, img.is_bigendian, img.step = 'rgb8', 0, rgb.shape[1] * 3
             img.data = rgb.tobytes()    # bytes: ~0.1 ms; a numpy array would take ~50 ms
@@ -258,7 +265,7 @@ class SimNode(Node):
         self.true_dh = self.true_dh + self.body_change
         self.world.set_dh(self.true_dh)
         self.body_changed = True
-        self.pub_true.publish(table_to_msg(self.true_dh))
+        self._publish_real_arm()
         text = f'the real robot changed ({self.settings.body_change}) at sim time {self.sim_ns / 1e9:.3f} s'
         self.get_logger().warning(text)
         return text
@@ -292,17 +299,7 @@ class SimNode(Node):
 
 
 def main(args: list[str] | None = None) -> None:
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = SimNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    spin_node(SimNode, args)
 
 
 if __name__ == '__main__':

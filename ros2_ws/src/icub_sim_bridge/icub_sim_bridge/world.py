@@ -26,32 +26,15 @@ import pybullet as p
 from numpy.typing import ArrayLike, NDArray
 from pybullet_utils import bullet_client
 
+from body_schema.arm_visuals import GREY, HAND_SIZE, WHITE, arm_visuals
 from body_schema.markers import aruco_dictionary, marker_corners
 from body_schema.robot import ArmModel, CameraIntrinsics, MarkerPlacement
-from body_schema.urdf import FixedLink, Visual, dh_chain_urdf, xyz_rpy_to_transform
+from body_schema.urdf import FixedLink, Visual, dh_chain_urdf
 
 from . import camera as cam
 
 __all__ = ['HAND_SIZE', 'MarkerSpec', 'SimWorld', 'marker_texture']
 
-#: Palm box extents in the hand frame [m]: x toward the fingers, y across, z palm thickness.
-HAND_SIZE = (0.07, 0.055, 0.025)
-
-# Colours: iCub-like white shells over dark grey joints.
-_WHITE = (0.92, 0.92, 0.9, 1.0)
-_GREY = (0.35, 0.35, 0.38, 1.0)
-_SKIN = (0.75, 0.72, 0.68, 1.0)
-
-# Link radii [m] of the segment each joint's link carries (the segment is drawn in <joint>_link).
-_LINK_RADIUS = {
-    'r_shoulder_pitch': 0.03,   # shoulder girdle, across the chest
-    'r_shoulder_roll': 0.03,
-    'r_shoulder_yaw': 0.032,    # upper arm
-    'r_elbow': 0.028,
-    'r_wrist_prosup': 0.026,    # forearm
-    'r_wrist_pitch': 0.02,
-    'r_wrist_yaw': 0.015,       # drawn by the hand itself
-}
 
 def _grid_obj(n: int) -> str:
     """Unit square in z = 0 (normal +z) as an n x n grid; uv (0, 0) at (-0.5, -0.5).
@@ -125,34 +108,6 @@ class MarkerSpec:
     def corners_in_marker(self) -> NDArray[np.float64]:
         """The black square's corners in ArUco order (TL, TR, BR, BL), shape (4, 3)."""
         return marker_corners(self.side_length)
-
-
-def _segment_visuals(a: float, d: float, radius: float, rgba: tuple, joint_ball: bool = True) -> list[Visual]:
-    """Cylinders along the DH link: origin -> (0, 0, d) -> (a, 0, d), in the joint's moving frame.
-
-    ``joint_ball`` adds a sphere at the joint; spheres are the costliest shapes to rasterize, so
-    the caller leaves out those hidden in the torso or coinciding with another joint's.
-    """
-    out = [Visual('sphere', (radius * 1.05,), rgba=_GREY)] if joint_ball else []
-    if abs(d) > 1e-4:
-        out.append(Visual('cylinder', (radius, abs(d)), xyz_rpy_to_transform([0, 0, d / 2], [0, 0, 0]), rgba))
-    if abs(a) > 1e-4:
-        out.append(Visual('cylinder', (radius, abs(a)),
-                          xyz_rpy_to_transform([a / 2, 0, d], [0, np.pi / 2, 0]), rgba))
-    return out
-
-
-def _hand_visuals(wrist_a: float) -> list[Visual]:
-    """Palm, fingers, thumb and wrist in the hand frame (palm face at z = 0, facing +z)."""
-    lx, ly, lz = HAND_SIZE
-    box = lambda size, xyz, rgba=_SKIN: Visual('box', size, xyz_rpy_to_transform(xyz, [0, 0, 0]), rgba)  # noqa: E731
-    wrist_len = wrist_a - lx / 2
-    return [
-        box((lx, ly, lz), (0.0, 0.0, -lz / 2), _WHITE),                               # palm
-        box((0.055, ly * 0.95, 0.014), (lx / 2 + 0.0275, 0.0, -0.011)),               # fingers
-        box((0.035, 0.016, 0.014), (-0.005, -ly / 2 - 0.008, -0.012)),                # thumb
-        box((wrist_len, 0.04, 0.02), (-lx / 2 - wrist_len / 2, 0.0, -0.014), _GREY),  # wrist
-    ]
 
 
 class SimWorld:
@@ -232,14 +187,7 @@ class SimWorld:
         with open(quad, 'w') as f:
             f.write(_grid_obj(MARKER_GRID))
         names = self.robot.joint_names
-        # A ball at joint i only where the chain has moved on since the previous ball (not inside
-        # the torso at the first joint, not twice at the shoulder's or the wrist's common point).
-        lengths = np.hypot(self.dh[:, 0], self.dh[:, 1])
-        ball = [False] + [bool(lengths[i - 1] > 0.02) for i in range(1, len(names))]
-        visuals: dict[str, list[Visual]] = {
-            f'{j}_link': _segment_visuals(a, d, _LINK_RADIUS.get(j, 0.02), _WHITE, b)
-            for j, (a, d, _alpha, _off), b in zip(names, self.dh, ball)}
-        visuals['hand'] = _hand_visuals(float(self.dh[-1, 0]))
+        visuals = arm_visuals(self.dh, names)
         extra = []
         for spec in self.markers:
             s = spec.quad_side
@@ -279,8 +227,8 @@ class SimWorld:
     def _build_context(self, head_pose: ArrayLike | None) -> None:
         """Static torso (around root_link) and a head behind the eyes."""
         c = self._client
-        torso = [((0.12, 0.15, 0.32), (0.01, 0.0, 0.05), _WHITE),     # chest and belly
-                 ((0.10, 0.24, 0.08), (0.0, 0.0, -0.14), _GREY)]      # hips
+        torso = [((0.12, 0.15, 0.32), (0.01, 0.0, 0.05), WHITE),     # chest and belly
+                 ((0.10, 0.24, 0.08), (0.0, 0.0, -0.14), GREY)]      # hips
         # No floor: TinyRenderer's cost grows with covered pixels and a floor filling the view
         # halved the frame rate; the light background suits the markers anyway.
         for size, xyz, rgba in torso:
@@ -316,7 +264,7 @@ class SimWorld:
         centre = left @ np.array([0.034, 0.0, -0.065, 1.0])
         quat = _quat_xyzw(left[:3, :3])
         if self._head is None:
-            vs = c.createVisualShape(p.GEOM_BOX, halfExtents=[0.06, 0.05, 0.05], rgbaColor=_WHITE)
+            vs = c.createVisualShape(p.GEOM_BOX, halfExtents=[0.06, 0.05, 0.05], rgbaColor=WHITE)
             self._head = c.createMultiBody(0, -1, vs, basePosition=centre[:3], baseOrientation=quat)
         else:
             c.resetBasePositionAndOrientation(self._head, centre[:3], quat)

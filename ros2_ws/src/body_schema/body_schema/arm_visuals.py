@@ -1,0 +1,127 @@
+"""How the arm looks: URDF geometry of a DH chain (the simulator's arm and the published models).
+
+Pure module. The simulator renders this geometry and ``/robot_description`` and
+``/body_schema/robot_description`` carry it, so a 3D view (Foxglove, RViz) draws the same arm the
+cameras see: a cylinder along each DH link, a ball at each joint where the chain has moved on, and
+a 7 x 5.5 x 2.5 cm hand (palm, fingers, thumb, wrist) whose palm carries the ArUco markers.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from .urdf import FixedLink, Visual, dh_chain_urdf, xyz_rpy_to_transform
+
+__all__ = ['HAND_SIZE', 'WHITE', 'GREY', 'SKIN', 'LINK_RADIUS', 'segment_visuals', 'hand_visuals',
+           'arm_visuals', 'marker_links', 'description_urdf']
+
+#: Palm box extents in the hand frame [m]: x toward the fingers, y across, z palm thickness.
+HAND_SIZE = (0.07, 0.055, 0.025)
+
+# Colours: iCub-like white shells over dark grey joints.
+WHITE = (0.92, 0.92, 0.9, 1.0)
+GREY = (0.35, 0.35, 0.38, 1.0)
+SKIN = (0.75, 0.72, 0.68, 1.0)
+
+#: Link radii [m] of the segment each joint's link carries (the segment is drawn in <joint>_link).
+LINK_RADIUS = {
+    'r_shoulder_pitch': 0.03,   # shoulder girdle, across the chest
+    'r_shoulder_roll': 0.03,
+    'r_shoulder_yaw': 0.032,    # upper arm
+    'r_elbow': 0.028,
+    'r_wrist_prosup': 0.026,    # forearm
+    'r_wrist_pitch': 0.02,
+    'r_wrist_yaw': 0.015,       # drawn by the hand itself
+}
+
+
+def segment_visuals(a: float, d: float, radius: float, rgba: tuple, joint_ball: bool = True) -> list[Visual]:
+    """Cylinders along the DH link: origin -> (0, 0, d) -> (a, 0, d), in the joint's moving frame.
+
+    ``joint_ball`` adds a sphere at the joint; spheres are the costliest shapes to rasterize, so
+    the caller leaves out those hidden in the torso or coinciding with another joint's.
+    """
+    out = [Visual('sphere', (radius * 1.05,), rgba=GREY)] if joint_ball else []
+    if abs(d) > 1e-4:
+        out.append(Visual('cylinder', (radius, abs(d)), xyz_rpy_to_transform([0, 0, d / 2], [0, 0, 0]), rgba))
+    if abs(a) > 1e-4:
+        out.append(Visual('cylinder', (radius, abs(a)),
+                          xyz_rpy_to_transform([a / 2, 0, d], [0, np.pi / 2, 0]), rgba))
+    return out
+
+
+def hand_visuals(wrist_a: float, palm_rgba: tuple = WHITE) -> list[Visual]:
+    """Palm, fingers, thumb and wrist in the hand frame (palm face at z = 0, facing +z)."""
+    lx, ly, lz = HAND_SIZE
+    box = lambda size, xyz, rgba=SKIN: Visual('box', size, xyz_rpy_to_transform(xyz, [0, 0, 0]), rgba)  # noqa: E731
+    wrist_len = max(wrist_a - lx / 2, 1e-3)
+    return [
+        box((lx, ly, lz), (0.0, 0.0, -lz / 2), palm_rgba),                            # palm
+        box((0.055, ly * 0.95, 0.014), (lx / 2 + 0.0275, 0.0, -0.011)),               # fingers
+        box((0.035, 0.016, 0.014), (-0.005, -ly / 2 - 0.008, -0.012)),                # thumb
+        box((wrist_len, 0.04, 0.02), (-lx / 2 - wrist_len / 2, 0.0, -0.014), GREY),   # wrist
+    ]
+
+
+def arm_visuals(dh: ArrayLike, joint_names: Sequence[str], rgba: tuple = WHITE) -> dict[str, list[Visual]]:
+    """Geometry of a DH arm for :func:`body_schema.urdf.dh_chain_urdf`, keyed by link name.
+
+    Parameters
+    ----------
+    dh : array_like, shape (L, 4)
+        ``(a, d, alpha, offset)`` per joint [m, m, rad, rad].
+    joint_names : sequence of str, length L
+    rgba : tuple of 4 floats
+        Shell colour (a translucent one draws a ghost, e.g. an estimate over the real arm).
+
+    Returns
+    -------
+    dict of str to list of Visual
+        ``<joint>_link`` and ``hand`` (``dh_chain_urdf`` adds its ``prefix``).
+    """
+    dh = np.asarray(dh, dtype=float)
+    # A ball at joint i only where the chain has moved on since the previous ball (not inside
+    # the torso at the first joint, not twice at the shoulder's or the wrist's common point).
+    lengths = np.hypot(dh[:, 0], dh[:, 1])
+    ball = [False] + [bool(lengths[i - 1] > 0.02) for i in range(1, len(joint_names))]
+    visuals = {f'{j}_link': segment_visuals(a, d, LINK_RADIUS.get(j, 0.02), rgba, b)
+               for j, (a, d, _alpha, _off), b in zip(joint_names, dh, ball)}
+    visuals['hand'] = hand_visuals(float(dh[-1, 0]), rgba)
+    return visuals
+
+
+def marker_links(model: 'ArmModel', thickness: float = 0.001) -> list[FixedLink]:  # noqa: F821
+    """The hand's markers as thin dark boxes on links ``marker_<name>`` of the hand."""
+    s = model.marker_side_length
+    return [FixedLink(f'marker_{m.name}', 'hand', m.hand_T_marker,
+                      (Visual('box', (s, s, thickness), rgba=(0.05, 0.05, 0.05, 1.0)),))
+            for m in model.markers]
+
+
+def description_urdf(model: 'ArmModel', dh: ArrayLike | None = None, *, prefix: str = '',  # noqa: F821
+                     rgba: tuple = WHITE) -> str:
+    """The URDF a robot description topic carries: the arm of ``dh`` with its look and markers.
+
+    Parameters
+    ----------
+    model : ArmModel
+        Joint names, limits, base, root frame and markers.
+    dh : array_like, shape (L, 4), optional
+        The table drawn (default: the model's).
+    prefix : str
+        Link and joint name prefix below ``root_link`` (a second arm in one TF tree).
+    rgba : tuple of 4 floats
+        Shell colour.
+
+    Returns
+    -------
+    str
+        URDF whose links are the frames of :func:`body_schema.urdf.chain_transforms` with the
+        same ``prefix`` and ``extra_links=marker_links(model)``.
+    """
+    dh = model.dh if dh is None else np.asarray(dh, dtype=float)
+    return dh_chain_urdf(dh, model.joint_names, model.limits, base=model.base, name=model.name,
+                         root_link=model.root_frame, visuals=arm_visuals(dh, model.joint_names, rgba),
+                         extra_links=marker_links(model), prefix=prefix)

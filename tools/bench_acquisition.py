@@ -211,6 +211,11 @@ SWEEPS: dict[str, dict[str, dict[str, object]]] = {
         **{f'UCSAL gamma {g:g}, {prior}': dict(strategy='ucsal', gamma=g, occlusion_prior=prior)
            for g, prior in ((0.01, 'flat'), (0.005, 'geometric'), (0.01, 'geometric'), (0.02, 'geometric'))},
     },
+    # The cost-sensitive constants again, with the geometric prior (AL improved more than they did).
+    'cost_sensitive': {
+        **{f'UCSAL gamma {g:g}': dict(strategy='ucsal', gamma=g) for g in (0.007, 0.01)},
+        **{f'CCSAL delta {d:g}': dict(strategy='ccsal', delta=d) for d in (0.3, 0.4)},
+    },
     # The defaults chosen from the sweeps above, for the final table on held-out seeds.
     'final': {
         'R': dict(strategy='random'),

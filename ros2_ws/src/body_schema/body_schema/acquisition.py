@@ -110,20 +110,13 @@ DIRECT_ALGORITHMS = {
     'ORIG_DIRECT_L': nlopt.GN_ORIG_DIRECT_L,
 }
 
-#: Bounded derivative-free local algorithms for the batch optimiser's refinement: NLopt's, one
-#: point per evaluation, or ``PATTERN``, a batched pattern search (every round evaluates the
-#: incumbent's coordinate neighbours and a few random directions in one vectorised call, moves to
-#: the best or halves the step), which trades evaluations for far fewer calls.
-LOCAL_ALGORITHMS: dict[str, int | None] = {
+#: NLopt bounded derivative-free local algorithms for the batch optimiser's refinement.
+LOCAL_ALGORITHMS = {
     'BOBYQA': nlopt.LN_BOBYQA,
     'SBPLX': nlopt.LN_SBPLX,
     'NELDERMEAD': nlopt.LN_NELDERMEAD,
     'COBYLA': nlopt.LN_COBYLA,
-    'PATTERN': None,
 }
-
-#: Random directions per round of the ``PATTERN`` local search (besides the 2 L coordinate ones).
-PATTERN_RANDOM_DIRECTIONS = 10
 
 CRITERIA = ('a_optimal', 'v_optimal')
 OCCLUSION_MODES = ('paper', 'expected', 'gain')
@@ -402,8 +395,8 @@ class SelectorConfig:
     """
 
     strategy: Strategy = Strategy.AL
-    gamma: float = 0.02
-    delta: float = 0.2
+    gamma: float = 0.01
+    delta: float = 0.4
     optimizer: str = 'batch'
     algorithm: str = 'DIRECT_L'
     max_evals: int = 1000
@@ -660,11 +653,8 @@ class JointSelector:
 
     def _local(self, count: '_Counted', x0: NDArray[np.float64], lo: NDArray[np.float64],
                hi: NDArray[np.float64], free: NDArray[np.bool_], max_evals: int) -> None:
-        """A bounded derivative-free search from ``x0`` over the ``free`` joints."""
+        """A bounded derivative-free NLopt search from ``x0`` over the ``free`` joints."""
         if not np.any(free):
-            return
-        if LOCAL_ALGORITHMS[self.config.local_algorithm] is None:
-            self._pattern(count, x0, lo, hi, free, max_evals)
             return
         f0 = float(count(x0[None])[0])
         # Excluded points look worse than the start (finite, so BOBYQA's model stays sane).
@@ -687,36 +677,6 @@ class JointSelector:
             opt.optimize(np.clip(x0[free], lo[free], hi[free]))
         except (nlopt.RoundoffLimited, nlopt.ForcedStop):
             pass
-
-    def _pattern(self, count: '_Counted', x0: NDArray[np.float64], lo: NDArray[np.float64],
-                 hi: NDArray[np.float64], free: NDArray[np.bool_], max_evals: int) -> None:
-        """Batched pattern search from ``x0`` over the ``free`` joints, at most ``max_evals`` evaluations.
-
-        Each round evaluates ``x +- step_j e_j`` for every free joint ``j`` and
-        :data:`PATTERN_RANDOM_DIRECTIONS` random unit directions (scaled per joint by the step) in
-        one call; the best improvement is taken (and the step grown by half), else the step halves.
-        The first step is 5 % of each side, as for the NLopt searches.
-        """
-        idx = np.nonzero(free)[0]
-        axes = np.zeros((idx.size, lo.size))
-        axes[np.arange(idx.size), idx] = 1.0
-        step = 0.05 * (hi - lo)
-        x = np.clip(x0, lo, hi)
-        fx = float(count(x[None])[0])
-        used = 1
-        per_round = 2 * idx.size + PATTERN_RANDOM_DIRECTIONS
-        while used + per_round <= max_evals and np.all(step[idx] > 1e-6 * (hi - lo)[idx]):
-            rand = self._rng.standard_normal((PATTERN_RANDOM_DIRECTIONS, lo.size)) * free
-            rand /= np.maximum(np.linalg.norm(rand, axis=1, keepdims=True), 1e-12)
-            cand = np.clip(x + np.concatenate([axes, -axes, rand]) * step, lo, hi)
-            v = count(cand)
-            used += per_round
-            k = int(np.argmin(v))
-            if v[k] < fx:
-                x, fx = cand[k], float(v[k])
-                step = 1.5 * step
-            else:
-                step = 0.5 * step
 
     @staticmethod
     def _snap(count: '_Counted', targets: NDArray[np.float64]) -> None:

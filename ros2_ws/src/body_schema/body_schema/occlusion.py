@@ -188,9 +188,10 @@ class VisibilityPrior:
     sharp one. The hand is seen if any marker is (independent markers); the result is mapped
     into ``[floor, ceiling]``: geometry never rules a configuration in or out completely.
 
-    The defaults are a maximum-likelihood fit to 1200 rendered and detected configurations of the
-    iCub's calibration box (three real robots, true tables; ``python -m tools.visibility_fit``):
-    no configuration predicted below 0.1 was seen, 85 % of those above 0.9 were.
+    The defaults are a maximum-likelihood grid fit to 1200 rendered and detected configurations of
+    the iCub's calibration box (three real robots, true tables); ``python -m tools.visibility_fit``
+    repeats it on another draw: mean log-likelihood -0.386 for the defaults, -0.382 for that draw's
+    best fit, -0.681 for a constant rate; none of the 275 configurations predicted below 0.1 was seen.
 
     Parameters
     ----------

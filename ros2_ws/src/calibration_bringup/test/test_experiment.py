@@ -76,6 +76,7 @@ def test_the_paper_system_overrides_estimator_and_selector_only() -> None:
     s = paper['selector']
     assert (s['occlusion_mode'], s['criterion'], s['optimizer'], s['algorithm'], s['max_evals']) == \
         ('paper', 'a_optimal', 'direct', 'DIRECT_L', 1000)
+    assert (s['occlusion_prior'], s['repeat_tolerance']) == ('flat', 0.0)
     # 'ours' is the parameter files as they are (not the paper's choices).
     assert (ours['estimator']['estimator'], ours['selector']['optimizer']) != ('ekf', 'direct')
     changed = {(node, k) for node in ours for k in set(ours[node]) | set(paper[node])

@@ -132,16 +132,24 @@ class GraphSettings:
     """Simulator settings of experiment runs, chosen by measurement: for the same seed they leave
     every iteration's outcome, error and movement as they were (the arm is kinematic and the
     images noise-free, so what the camera sees at rest does not depend on when it looks); only
-    the time differs. Checked: 7 methods x seeds 0-3 x 50 iterations, every CSV field but the
-    timings identical to the former 30 deg/s and 2.5 Hz.
+    the time differs. Checked on 7 methods x seeds 0-3 x 50 iterations (before the Ray runner)
+    against 30 deg/s and 2.5 Hz: every CSV field but the timings identical, except one run from
+    its iteration 49 (UCSAL, seed 2; final error 1.32 -> 1.35 mm), through the selector's change
+    below, not these settings. There an iteration ended on the previous iteration's verdict (its
+    target lay within the settle tolerance of the previous one, and the loop takes any verdict at
+    the reached configuration) and the next target used to be chosen on the selector's next 50 ms
+    wall-clock step, with whatever estimate had arrived by then: that depends on how far the
+    simulator ran in those 50 ms, i.e. on load (two runs of main's own code, UCSAL seed 0, part
+    from iteration 18). The selector now chooses on the next joint state: three concurrent runs
+    gave identical rows.
 
-    Wall seconds per iteration, one worker, seeds 0-1, 50 iterations, on the shared 2-core machine
-    (load 6-9), R / AL / UCSAL / CCSAL: 0.20 / 0.25 / 0.19 / 0.14 with 30 deg/s, 2.5 Hz, a render
-    per frame and selection on the selector's 50 ms wall-clock step; 0.031 / 0.066 / 0.074 / 0.066
-    now (AL: selection 0.029, simulator 0.016 of which rendering 0.012, MAP update 0.004, detection
-    0.002, executor 0.011). The selector selecting on the first joint state after an iteration
-    (not on its wall-clock step), one render per resting arm (``SimWorld.render``) and an executor
-    that does not wait on the QoS event handlers (``ros_session(qos_events=False)``) are part of it.
+    Wall seconds per iteration, one worker, two seeds, 50 iterations, on the shared 2-core machine,
+    R / AL / UCSAL / CCSAL: 0.164 / 0.288 / 0.205 / 0.148 with 30 deg/s, 2.5 Hz, a render per
+    frame and selection on the selector's 50 ms step; 0.027 / 0.064 / 0.065 / 0.061 now (AL:
+    selection 0.027, simulator 0.014 of which rendering 0.011, MAP update 0.008, detection 0.003,
+    executor 0.008). The selector choosing on the first joint state after an iteration, one
+    render per resting arm (``SimWorld.render``) and an executor that does not wait on the QoS
+    event handlers (``ros_session(qos_events=False)``) are part of it.
 
     Attributes
     ----------

@@ -5,8 +5,10 @@ One iteration (docs/architecture.md, "The loop"; the state machine is
 until ``/joint_states`` shows the arm settled there (or give up: ``unreachable``), take the
 attempt's outcome (``failed``: the first ``/markers`` frame captured after settling is empty;
 otherwise the estimator's verdict at this configuration on ``/body_schema/update_status``, or
-``timeout``), feed the occlusion model, account the movement. After ``iterations`` iterations it
-logs a summary and the process exits with status 0. Topics and QoS: the contract
+``timeout``), feed the occlusion model, account the movement. The next selection starts on the
+first joint state after an iteration ends; a 20 Hz wall-clock step reports missing inputs and
+enforces the timeouts. After ``iterations`` iterations it logs a summary and the process exits
+with status 0. Topics and QoS: the contract
 (:mod:`calibration_interfaces.contract`).
 
 Subscriptions
@@ -160,6 +162,12 @@ class SelectorNode(Node):
         if not np.all(np.isfinite(q)):
             return
         self.loop.joint_state(stamp_to_seconds(msg.header.stamp), q)
+        if self.phase is Phase.WAITING:
+            # Select on the first joint state after an iteration ends rather than on the next
+            # wall-clock step: a simulator running faster than real time would otherwise tick on
+            # idle for up to a step period. The estimator publishes its estimate before its
+            # verdict, so the estimate of that verdict has arrived by now.
+            self.step()
 
     def on_estimate(self, msg: Float64MultiArray) -> None:
         try:

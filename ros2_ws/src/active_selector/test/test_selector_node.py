@@ -110,6 +110,22 @@ def test_an_empty_frame_after_settling_fails_the_iteration(ros, tmp_path):
     ros.spin_until(lambda: len(probe.commands) == 2, 5.0, 'the next command')
 
 
+def test_the_next_target_is_selected_on_the_first_joint_state_after_an_iteration(ros):
+    # With its periodic step cancelled the node can only select from the joint-state callback: a
+    # simulator faster than real time must not tick on idle until the next wall-clock step.
+    probe = Probe(ros, strategy='random', iterations=2, seed=3)
+    target = probe.target()
+    for timer in probe.node.timers:
+        timer.cancel()
+    probe.settle(target)
+    probe.frame(0)
+    ros.spin_until(lambda: probe.progress, 5.0, 'the first progress record')
+    assert len(probe.commands) == 1 and probe.node.phase is Phase.WAITING
+    probe.joints(target, ahead=0.05)
+    ros.spin_until(lambda: len(probe.commands) == 2, 5.0, 'the second command')
+    assert probe.node.phase is Phase.MOVING
+
+
 def test_the_verdict_at_the_reached_configuration_ends_the_last_iteration(ros):
     probe = Probe(ros, strategy='random', iterations=1, seed=4)
     target = probe.target()

@@ -132,33 +132,55 @@ class RunError(RuntimeError):
 
 @dataclass(frozen=True)
 class GraphSettings:
-    """Simulator settings of experiment runs, chosen by measurement (AL, 20 iterations, same seed:
-    identical outcomes and final errors for every setting below, only the time differs).
+    """Simulator settings of experiment runs, chosen by measurement: for the same seed they leave
+    every iteration's outcome, error and movement as they were (the arm is kinematic and the
+    images noise-free, so what the camera sees at rest does not depend on when it looks); only
+    the time differs. Checked on 7 methods x seeds 0-3 x 50 iterations (before the Ray runner)
+    against 30 deg/s and 2.5 Hz: every CSV field but the timings identical, except one run from
+    its iteration 49 (UCSAL, seed 2; final error 1.32 -> 1.35 mm), through the selector's change
+    below, not these settings. There an iteration ended on the previous iteration's verdict (its
+    target lay within the settle tolerance of the previous one, and the loop takes any verdict at
+    the reached configuration) and the next target used to be chosen on the selector's next 50 ms
+    wall-clock step, with whatever estimate had arrived by then: that depends on how far the
+    simulator ran in those 50 ms, i.e. on load (two runs of main's own code, UCSAL seed 0, part
+    from iteration 18). The selector now chooses on the next joint state: three concurrent runs
+    gave identical rows.
+
+    Wall seconds per iteration, one worker, two seeds, 50 iterations, on the shared 2-core machine,
+    R / AL / UCSAL / CCSAL: 0.164 / 0.288 / 0.205 / 0.148 with 30 deg/s, 2.5 Hz, a render per
+    frame and selection on the selector's 50 ms step; 0.027 / 0.064 / 0.065 / 0.061 now (AL:
+    selection 0.027, simulator 0.014 of which rendering 0.011, MAP update 0.008, detection 0.003,
+    executor 0.008). The selector choosing on the first joint state after an iteration, one
+    render per resting arm (``SimWorld.render``) and an executor that does not wait on the QoS
+    event handlers (``ros_session(qos_events=False)``) are part of it.
 
     Attributes
     ----------
     image_rate : float
-        Camera rate [Hz, sim time]. Frames during a move are never measurement attempts, so a low
-        rate only delays the first frame after settling by up to one period of sim time. CPU
-        time per iteration outside the selection, R / AL / CCSAL (30 iterations, 2 seeds):
-        5 Hz 0.23 / 0.18 / 0.11 s, 3.3 Hz 0.19 / 0.14 / 0.10 s, 2.5 Hz 0.16 / 0.12 / 0.09 s,
-        2 Hz 0.18 / 0.11 / 0.10 s (fewer renders, but more sim ticks waiting for the frame);
-        10 Hz cost 0.21 s for AL.
+        Camera rate [Hz, sim time]. An iteration (the attempt frame's detection, the estimator's
+        verdict, the next selection and command, a one- or two-step move, settling and the
+        selector's 0.1 s ``settle_time``) takes about 12 physics steps of 0.02 s, so it ends one
+        frame after the previous one at 4 Hz (0.25 s of sim time, one render); at 5 Hz it needs two
+        frames (0.40 s), at 10 Hz three (0.30 s), at 20 Hz five (0.25 s, five detections). CPU s per
+        iteration, R / AL (3600 deg/s, load 8-10, +-20%): 4 Hz 0.032 / 0.055, 3.3 Hz
+        0.031 / 0.058, 5 Hz 0.039 / 0.065, 10 Hz 0.054 / 0.081, 20 Hz 0.049 / 0.070.
     physics_step : float
         Physics step [s]; the arm is kinematic (placed, not simulated), so one step per
         joint-state period suffices: 0.24 -> 0.21 s per AL iteration at 10 Hz.
     max_joint_speed_deg : float
-        Joint speed limit [deg/s]. The metrics count degrees, not seconds; the default is the
-        simulator's.
+        Joint speed limit [deg/s]. The metrics count degrees, not seconds, and the arm is
+        kinematic: at 3600 deg/s any move in the calibration box takes one or two physics steps
+        (at the simulator's 30 deg/s, 0.5-2 s of sim time: 25-100 steps, each a joint state and a
+        clock message to every node). 360 deg/s left 0.2 s per move.
     image_width, image_height : int
         Camera resolution (the iCub simulator's 320 x 240 by default).
     run_timeout : float
         Wall seconds a run may take per iteration before it is declared stuck (plus one minute).
     """
 
-    image_rate: float = 2.5
+    image_rate: float = 4.0
     physics_step: float = 0.02
-    max_joint_speed_deg: float = 30.0
+    max_joint_speed_deg: float = 3600.0
     image_width: int = 320
     image_height: int = 240
     run_timeout: float = 30.0
@@ -360,7 +382,7 @@ def run_graph(spec: RunSpec, domain_id: int, settings: GraphSettings = GraphSett
     from body_schema.metrics import PoseErrorEvaluator
 
     rows: list[dict[str, Any]] = []
-    with ros_session(domain_id) as (ctx, executor):
+    with ros_session(domain_id, qos_events=False) as (ctx, executor):
         try:
             graph = InProcessGraph(ctx, executor, node_parameters(spec, settings, system), record_path,
                                    time_callbacks=True)

@@ -94,8 +94,17 @@ def recorder_available() -> bool:
 
 
 @contextmanager
-def ros_session(domain_id: int) -> Iterator[tuple[Any, Any]]:
+def ros_session(domain_id: int, qos_events: bool = True) -> Iterator[tuple[Any, Any]]:
     """A fresh ``Context`` on ``domain_id`` (localhost discovery) and a ``SingleThreadedExecutor``.
+
+    Parameters
+    ----------
+    domain_id : int
+    qos_events : bool
+        Wait on the QoS event handlers rclpy gives every publisher and subscription (their
+        default callbacks warn about incompatible QoS or types). An in-process graph takes all
+        its QoS from one contract, and the ~70 handlers make each wait about 15% dearer: the
+        experiment turns them off.
 
     Yields
     ------
@@ -103,12 +112,19 @@ def ros_session(domain_id: int) -> Iterator[tuple[Any, Any]]:
     """
     import rclpy
     from rclpy.context import Context
+    from rclpy.event_handler import EventHandler
     from rclpy.executors import SingleThreadedExecutor
+
+    class WithoutQosEvents(SingleThreadedExecutor):
+        """Never waits on (nor runs) QoS event handlers."""
+
+        def can_execute(self, entity: Any) -> bool:
+            return not isinstance(entity, EventHandler) and super().can_execute(entity)
 
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
     ctx = Context()
     rclpy.init(context=ctx, domain_id=domain_id)
-    executor = SingleThreadedExecutor(context=ctx)
+    executor = (SingleThreadedExecutor if qos_events else WithoutQosEvents)(context=ctx)
     try:
         yield ctx, executor
     finally:

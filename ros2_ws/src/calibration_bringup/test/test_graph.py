@@ -3,12 +3,14 @@ tests/test_closed_loop.py and the experiment tests)."""
 from __future__ import annotations
 
 import inspect
+import os
+import time
 
 import pytest
 from std_msgs.msg import String
 
 from calibration_bringup.graph import (PARAMS_FILES, CallbackTimer, InProcessGraph, config_dir, default_parameters,
-                                       merge_parameters)
+                                       merge_parameters, ros_session)
 from calibration_interfaces.parameters import read_params_file
 
 
@@ -57,3 +59,25 @@ def test_callbacks_created_later_are_timed_and_keep_their_signature(ros) -> None
     assert timer.totals['n'] > 0
     timer.refresh()                                   # wrapped once, not again
     assert not hasattr(sub.callback.__wrapped__, '_timed')
+
+
+def test_a_session_without_qos_events_delivers_but_never_waits_on_event_handlers() -> None:
+    from rclpy.node import Node
+
+    domain = 180 + os.getpid() % 10      # clear of the fixture's 1..100 and the experiment's
+    for qos_events in (True, False):
+        with ros_session(domain, qos_events) as (ctx, executor):
+            node = Node('session_probe', context=ctx)
+            executor.add_node(node)
+            got: list[String] = []
+            node.create_subscription(String, 'chatter', got.append, 10)
+            pub = node.create_publisher(String, 'chatter', 10)
+            handlers = list(node.waitables)       # rclpy's default incompatible-QoS/type handlers
+            assert handlers and all(executor.can_execute(h) is qos_events for h in handlers)
+            deadline = time.monotonic() + 10.0
+            while not got and time.monotonic() < deadline:
+                pub.publish(String(data='x'))
+                executor.spin_once(timeout_sec=0.01)
+            executor.remove_node(node)
+            node.destroy_node()
+        assert got and got[0].data == 'x', f'qos_events={qos_events}: no message within 10 s'

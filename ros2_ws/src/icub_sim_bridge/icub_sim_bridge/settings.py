@@ -33,7 +33,9 @@ class SimSettings:
     real_time_factor: float = setting(1.0, 'Sim seconds per wall second; 0 runs as fast as possible', (0.0, 100.0))
     joint_state_rate: float = setting(50.0, '/joint_states and /clock rate [Hz, sim time]', (50.0, 1000.0))
     image_rate: float = setting(10.0, 'Camera rate [Hz, sim time]; 0 disables the images', (0.0, 60.0))
-    max_joint_speed_deg: float = setting(30.0, 'Speed limit of every joint [deg/s]', (1.0, 360.0))
+    # Up to 10 turns a second: the arm is kinematic, so any speed is exact, and a fast arm saves
+    # the experiment sim ticks (calibration_bringup.experiment.GraphSettings).
+    max_joint_speed_deg: float = setting(30.0, 'Speed limit of every joint [deg/s]', (1.0, 3600.0))
     initial_positions_deg: tuple[float, ...] = setting((), 'Arm joints at start [deg]; empty = centre of the '
                                                        'calibration box', array_type='double')
     head_pose_deg: tuple[float, ...] = setting((), "Head joints (neck pitch, roll, yaw, eye tilt, eye pan) [deg], "

@@ -110,6 +110,10 @@ class MarkerSpec:
         return marker_corners(self.side_length)
 
 
+#: Views whose latest image :meth:`SimWorld.render` keeps (the node renders one per eye).
+_CACHED_VIEWS = 4
+
+
 class SimWorld:
     """A PyBullet world with the arm, its marked hand and the static torso and head.
 
@@ -133,9 +137,17 @@ class SimWorld:
     Attributes
     ----------
     renders : int
-        Images rendered so far (a supersampled one counts once).
+        Images rendered so far (a supersampled one counts once; one served from the cache does
+        not count).
     render_seconds : float
         Wall seconds spent rendering them: a timing hook for benchmarks and experiments.
+
+    Notes
+    -----
+    The arm is kinematic and the scene holds no other moving body, so an image depends only on
+    the joint positions, the table, the head and the camera: :meth:`render` keeps the latest
+    image of each camera and returns it again while none of these has changed (a camera
+    watching an arm at rest renders once, not at every frame).
     """
 
     def __init__(self, robot: ArmModel, dh: ArrayLike | None = None, *,
@@ -168,6 +180,8 @@ class SimWorld:
         self.head_pose: NDArray[np.float64] | None = None
         self.renders = 0
         self.render_seconds = 0.0
+        self._q_set: NDArray[np.float64] | None = None     # joint positions last placed
+        self._images: dict[tuple, NDArray[np.uint8]] = {}  # latest image per camera and view
         self._tmp = tempfile.mkdtemp(prefix='icub_sim_')
         self._client = bullet_client.BulletClient(connection_mode=p.DIRECT)
         try:
@@ -221,6 +235,8 @@ class SimWorld:
             tex = c.loadTexture(png)
             c.changeVisualShape(self.body, self._link_index[f'marker_{spec.placement.name}'], -1,
                                 textureUniqueId=tex, rgbaColor=[1, 1, 1, 1])
+        self._images.clear()
+        self._q_set = None
         self._build_context(head_pose)
         self.set_joint_positions(np.clip(np.zeros(len(names)), self.robot.limits[:, 0], self.robot.limits[:, 1]))
 
@@ -258,6 +274,7 @@ class SimWorld:
     def set_head_pose(self, head_pose: ArrayLike) -> None:
         """Place the static head geometry for head joints ``head_pose`` (5,) [rad]."""
         self.head_pose = np.array(head_pose, dtype=float)
+        self._images.clear()
         c = self._client
         left = self.robot.camera_pose('left', head_pose)
         # A 12 x 10 x 10 cm skull just behind the eyes (never in front: the cameras sit there).
@@ -281,6 +298,10 @@ class SimWorld:
         q = np.asarray(q, dtype=float)
         if q.shape != (len(self._arm_joints),) or not np.all(np.isfinite(q)):
             raise ValueError(f'joint positions must be {len(self._arm_joints)} finite values, got {q!r}')
+        if self._q_set is not None and np.array_equal(q, self._q_set):
+            return
+        self._q_set = q.copy()
+        self._images.clear()
         for idx, v in zip(self._arm_joints, q):
             self._client.resetJointState(self.body, idx, float(v), 0.0)
 
@@ -339,14 +360,25 @@ class SimWorld:
 
         Returns
         -------
-        ndarray, shape (H, W, 3), uint8, C-contiguous
+        ndarray, shape (H, W, 3), uint8, C-contiguous, read-only
+            The same array as the previous call's if nothing in the scene or the view changed.
         """
+        view = np.asarray(root_T_cam, dtype=float)
+        key = (view.tobytes(), intrinsics.K.tobytes(), intrinsics.width, intrinsics.height, near, far, supersample)
+        image = self._images.get(key)
+        if image is not None:
+            return image
         t0 = time.perf_counter()
         try:
-            return self._render(root_T_cam, intrinsics, near, far, supersample)
+            image = self._render(view, intrinsics, near, far, supersample)
         finally:
             self.renders += 1
             self.render_seconds += time.perf_counter() - t0
+        image.setflags(write=False)
+        if len(self._images) >= _CACHED_VIEWS:    # many views of one scene (a study): keep it small
+            self._images.clear()
+        self._images[key] = image
+        return image
 
     def _render(self, root_T_cam: ArrayLike, intrinsics: CameraIntrinsics, near: float, far: float,
                 supersample: int) -> NDArray[np.uint8]:

@@ -159,3 +159,37 @@ def test_set_dh_rebuilds_the_arm_with_the_new_table() -> None:
         assert w.render(ROBOT.camera_pose('left'), ROBOT.camera).shape == (ROBOT.camera.height, ROBOT.camera.width, 3)
         with pytest.raises(ValueError, match='shape'):
             w.set_dh(changed[:3])
+
+
+def test_an_unchanged_scene_is_rendered_once_and_any_change_renders_again() -> None:
+    """The image cache: a camera watching an arm at rest gets the image it would render, and
+    moving the arm, changing the body or the head renders anew."""
+    q = ROBOT.calibration_box.mean(axis=1)
+    cam, intr = ROBOT.camera_pose('left'), ROBOT.camera
+    with SimWorld(ROBOT, head_pose=ROBOT.eyes.head_pose) as w, \
+            SimWorld(ROBOT, head_pose=ROBOT.eyes.head_pose) as fresh:
+        w.set_joint_positions(q)
+        first = w.render(cam, intr)
+        n = w.renders
+        for _ in range(5):
+            w.step()
+        w.set_joint_positions(q.copy())                       # the same configuration again
+        again = w.render(cam, intr)
+        assert again is first and w.renders == n and not again.flags.writeable
+        fresh.set_joint_positions(q)
+        np.testing.assert_array_equal(fresh.render(cam, intr), first)
+
+        moved = q.copy()
+        moved[3] += np.radians(5.0)
+        w.set_joint_positions(moved)
+        assert not np.array_equal(w.render(cam, intr), first) and w.renders == n + 1
+        w.set_joint_positions(q)
+        np.testing.assert_array_equal(w.render(cam, intr), first)
+        assert w.renders == n + 2
+        changed = ROBOT.dh.copy()
+        changed[4, 1] += 0.010
+        w.set_dh(changed)
+        assert not np.array_equal(w.render(cam, intr), first) and w.renders == n + 3
+        w.set_head_pose(ROBOT.eyes.head_pose)
+        w.render(cam, intr)
+        assert w.renders == n + 4

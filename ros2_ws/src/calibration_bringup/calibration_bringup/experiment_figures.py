@@ -30,7 +30,7 @@ from typing import Any, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ['MethodRuns', 'load_metrics', 'summary_markdown', 'plot_all', 'render', 'main']
+__all__ = ['MethodRuns', 'load_metrics', 'paired_difference', 'summary_markdown', 'plot_all', 'render', 'main']
 
 #: Plot order and style: the paper's four methods, then the CN variants.
 ORDER = ('R', 'AL', 'UCSAL', 'CCSAL', 'AL-CN', 'UCSAL-CN', 'CCSAL-CN')
@@ -138,6 +138,34 @@ def _pm(values: NDArray[np.float64], digits: int) -> str:
     return f'{v.mean():.{digits}f} +- {v.std():.{digits}f}' if v.size > 1 else f'{v.mean():.{digits}f}'
 
 
+def paired_difference(first: MethodRuns, second: MethodRuns, column: str) -> tuple[int, float, int, float]:
+    """Paired final values of two methods over their shared repetitions.
+
+    Returns
+    -------
+    pairs : int
+    median_difference : float
+        Median of ``first - second``.
+    first_lower : int
+        Pairs where ``first`` is lower.
+    p_value : float
+        Two-sided Wilcoxon signed-rank test (NaN with fewer than two non-zero differences).
+    """
+    from scipy.stats import wilcoxon
+
+    fa = dict(zip(first.repetitions.tolist(), first.final(column)))
+    fb = dict(zip(second.repetitions.tolist(), second.final(column)))
+    shared = sorted(fa.keys() & fb.keys())
+    a = np.array([fa[r] for r in shared], dtype=float)
+    b = np.array([fb[r] for r in shared], dtype=float)
+    ok = np.isfinite(a) & np.isfinite(b)
+    d = a[ok] - b[ok]
+    if d.size == 0:
+        return 0, float('nan'), 0, float('nan')
+    p = float(wilcoxon(d).pvalue) if np.count_nonzero(d) >= 2 else float('nan')
+    return int(d.size), float(np.median(d)), int(np.sum(d < 0)), p
+
+
 def summary_markdown(data: dict[str, MethodRuns], system: str | None = None) -> str:
     """The summary tables (Markdown): accuracy and movement, then time per iteration; ``system``
     (the runner's ``--system``), if known, in the heading."""
@@ -162,6 +190,29 @@ def summary_markdown(data: dict[str, MethodRuns], system: str | None = None) -> 
                      f'{_pm(m.final("orientation_deg"), 2)} | {_pm(m.columns["position_mm"][:, 0], 1)} | '
                      f'{_pm(m.final("movement_deg"), 0)} | {ratio} | {_pm(m.final("discarded"), 1)} | '
                      f'{_pm(m.final("rejected"), 1)} |')
+    lines += ['', '| method | position [mm] median | orientation [deg] median | error / AL (mean position) |',
+              '|---|---|---|---|']
+    for name, m in data.items():
+        ref = 'AL-CN' if name.endswith('-CN') else 'AL'
+        ratio = '-'
+        if ref in data and name != ref:
+            ratio = f'{np.nanmean(m.final("position_mm")) / np.nanmean(data[ref].final("position_mm")):.2f}'
+        lines.append(f'| {name} | {np.nanmedian(m.final("position_mm")):.2f} | '
+                     f'{np.nanmedian(m.final("orientation_deg")):.2f} | {ratio} |')
+    pairs = [(a, b) for a, b in (('AL', 'R'), ('AL', 'AL-CN'), ('UCSAL', 'UCSAL-CN'), ('CCSAL', 'CCSAL-CN'))
+             if a in data and b in data]
+    if pairs:
+        lines += ['', '## Paired comparisons', '',
+                  'Final errors of two methods over the repetitions both ran (same real robot and initial '
+                  'guess): median of the paired differences (first minus second; negative favours the first), '
+                  'how often the first is lower, and the two-sided Wilcoxon signed-rank p-value.', '',
+                  '| first vs second | pairs | position: median diff [mm], first lower, p | '
+                  'orientation: median diff [deg], first lower, p |', '|---|---|---|---|']
+        for a, b in pairs:
+            cells = [paired_difference(data[a], data[b], c) for c in ('position_mm', 'orientation_deg')]
+            n = cells[0][0]
+            lines.append(f'| {a} vs {b} | {n} | ' + ' | '.join(
+                f'{d:+.3f}, {k}/{n}, p = {pv:.2g}' if n else '-' for n, d, k, pv in cells) + ' |')
     if 'AL' in data:
         al = data['AL']
         p, o = np.nanmean(al.final('position_mm')), np.nanmean(al.final('orientation_deg'))

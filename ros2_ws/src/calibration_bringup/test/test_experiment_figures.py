@@ -67,6 +67,9 @@ def test_summary_reports_final_statistics(experiment_dir: Path) -> None:
     assert _table_row(summary, 'UCSAL-CN')[6] == '0.50' and _table_row(summary, 'CCSAL-CN')[6] == '0.25'
     assert _table_row(summary, 'AL')[6] == '-'
     assert 'AL after 5 iterations: 5.00 mm (target <= 5 mm: met), 0.50 deg' in summary
+    # Paired over the three shared repetitions, one row per compared pair.
+    for pair in ('AL vs R', 'AL vs AL-CN', 'UCSAL vs UCSAL-CN', 'CCSAL vs CCSAL-CN'):
+        assert re.search(rf'^\| {pair} \| 3 \| [-+]\d', summary, re.M), pair
     timing = next(line for line in summary.splitlines() if line.startswith('| AL | 0.100'))
     assert re.search(r'\| 0\.250 \| 0\.300 \| 0\.118 \|$', timing), timing   # CPU, wall, other = 0.3 - 0.182
 
@@ -118,3 +121,19 @@ def test_bad_inputs_are_named(tmp_path: Path) -> None:
     with pytest.raises(FileNotFoundError, match='metrics.csv'):
         figs.render(tmp_path / 'empty')
     assert figs.main([str(tmp_path / 'empty')]) == 2
+
+
+def _runs(method: str, reps: list[int], final: list[float]) -> figs.MethodRuns:
+    pos = np.array([[10.0, f] for f in final])
+    return figs.MethodRuns(method, np.array(reps), {'position_mm': pos, 'orientation_deg': pos / 10})
+
+
+def test_paired_difference_pairs_by_repetition() -> None:
+    a = _runs('AL', [0, 1, 2, 3, 4, 5], [1.0, 2.0, 3.0, 4.0, 5.0, 6.0])
+    # Same repetitions in another order and one extra: pairs are matched by repetition, not position.
+    b = _runs('AL-CN', [5, 4, 3, 2, 1, 0, 9], [6.5, 5.5, 4.5, 3.5, 2.5, 1.5, 0.0])
+    n, d, lower, p = figs.paired_difference(a, b, 'position_mm')
+    assert (n, lower) == (6, 6) and d == pytest.approx(-0.5)
+    assert p == pytest.approx(0.03125)          # exact two-sided signed-rank p for 6 of 6 one way
+    n, d, lower, p = figs.paired_difference(a, a, 'position_mm')
+    assert (n, d, lower) == (6, 0.0, 0) and np.isnan(p)

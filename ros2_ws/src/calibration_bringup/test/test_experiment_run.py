@@ -57,7 +57,7 @@ def test_two_methods_run_resume_and_report(tmp_path: Path) -> None:
 
     combined = ex.read_rows(tmp_path / 'metrics.csv')
     assert len(combined) == 2 * (ITERATIONS + 1)
-    assert (tmp_path / 'summary.md').read_text().count('| AL-CN |') == 2   # accuracy and time tables
+    assert (tmp_path / 'summary.md').read_text().count('| AL-CN |') == 3   # accuracy, medians and time tables
     assert (tmp_path / 'figures' / 'discarded.png').stat().st_size > 1000
     assert 'AL-CN rep 0 (seed 3): done' in log.getvalue()
     assert json.loads((tmp_path / 'config.json').read_text())['seeds'][0] == \

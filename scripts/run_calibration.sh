@@ -184,6 +184,26 @@ start detector marker_detector detector_node --ros-args --params-file "$config/d
 start estimator dh_estimator estimator_node --ros-args --params-file "$config/estimator.yaml" \
   -p "initial_seed:=$seed" -p "noise_model:=$noise" -p "estimator:=$estimator" \
   -p "export_dir:=$output/model"
+# The selector last, once the recorder records every topic but the selector's own two (/arm/command,
+# /calibration/progress): nothing moves and the estimator does not update before the first command,
+# so the bag then holds the initial estimate and every observation. (The recorder finds publishers
+# by polling the graph; discovering a new process took up to 2 s wall in test runs, and a topic
+# subscribed late loses its first messages: a hand pose, or the latched initial estimate replaced
+# by the first update.)
+recording_all() {
+  local want got
+  want=$(sed -n 's/.*recording \([0-9]*\) topics to .*/\1/p' "$output/logs/recorder.log" 2>/dev/null | head -n 1)
+  got=$(grep -c '\]: recording /' "$output/logs/recorder.log" 2>/dev/null) || true
+  [ -n "$want" ] && [ "${got:-0}" -ge $((want - 2)) ]
+}
+for ((t = 0; t < 200; t++)); do
+  recording_all && break
+  for name in "${order[@]}"; do
+    alive "$name" || { wait "${pid[$name]}" && rc=0 || rc=$?; fail "$name" "exited early (status $rc)"; }
+  done
+  sleep 0.1
+done
+recording_all || fail recorder "did not subscribe to the other nodes' topics within 20 s"
 start selector active_selector selector_node --ros-args --params-file "$config/selector.yaml" \
   -p "strategy:=$strategy" -p "iterations:=$iterations" -p "seed:=$seed" -p "noise_model:=$noise" \
   -p "progress_file:=$output/progress.jsonl"

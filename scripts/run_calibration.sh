@@ -137,6 +137,12 @@ start() {   # start NAME PKG EXE ARGS...: its own process group, so a stop reach
   order+=("$name")
 }
 alive() { kill -0 "${pid[$1]}" 2>/dev/null; }
+all_alive() {   # all_alive NAME...: fail the run on the first one that exited
+  local name rc
+  for name in "$@"; do
+    alive "$name" || { wait "${pid[$name]}" && rc=0 || rc=$?; fail "$name" "exited early (status $rc)"; }
+  done
+}
 stop() {    # stop NAME...: SIGINT (nodes finish files and exports), then SIGKILL after 15 s
   local name t
   for name in "$@"; do alive "$name" && kill -INT -- "-${pid[$name]}" 2>/dev/null || true; done
@@ -198,9 +204,7 @@ recording_all() {
 }
 for ((t = 0; t < 200; t++)); do
   recording_all && break
-  for name in "${order[@]}"; do
-    alive "$name" || { wait "${pid[$name]}" && rc=0 || rc=$?; fail "$name" "exited early (status $rc)"; }
-  done
+  all_alive "${order[@]}"
   sleep 0.1
 done
 recording_all || fail recorder "did not subscribe to the other nodes' topics within 20 s"
@@ -218,9 +222,7 @@ echo_iterations() {   # the selector's one log line per iteration, those not sho
   shown=$(wc -l <<<"$lines")
 }
 while alive selector; do
-  for name in recorder sim detector estimator ${pid[viz]:+viz}; do
-    alive "$name" || { wait "${pid[$name]}" && rc=0 || rc=$?; fail "$name" "exited early (status $rc)"; }
-  done
+  all_alive recorder sim detector estimator ${pid[viz]:+viz}
   (( SECONDS - wall0 <= timeout )) || fail selector "did not finish $iterations iterations within $timeout s"
   echo_iterations
   sleep 0.2

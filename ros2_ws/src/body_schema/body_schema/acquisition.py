@@ -228,7 +228,7 @@ class AcquisitionCost:
         covariance ``H P H^T``; ``None``: the occlusion model's flat prior.
     visibility_weight : float
         Weight ``w`` of the geometric prior: ``eta``'s prior mean is ``w p_geo + (1 - w) a0 / (a0 + b0)``
-        (see :func:`~body_schema.occlusion.geometric_evidence`).
+        (see :meth:`~body_schema.occlusion.OcclusionModel.geometric_evidence`).
     penalty_a, penalty_b : float
         ``a * arctan(b * p_x)`` penalty (``a = 0`` disables it).
     occlusion_mode : {'paper', 'expected', 'gain'}

@@ -53,7 +53,6 @@ from builtin_interfaces.msg import Duration
 from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PoseArray, PoseStamped
 from rclpy.clock import Clock, ClockType
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, String
@@ -63,7 +62,7 @@ from body_schema import load_robot
 from calibration_interfaces.contract import SENSOR
 from calibration_interfaces.messages import (MessageFormatError, joints_in_order, msg_to_covariance, msg_to_table,
                                              pose_msg_to_matrix, stamp_to_seconds)
-from calibration_interfaces.node_util import WarnOnce, declare_settings, qos_profile
+from calibration_interfaces.node_util import WarnOnce, declare_settings, qos_profile, spin_node
 from calibration_interfaces.noise import NoiseSettings, PoseDependentSettings
 from calibration_interfaces.outcome import StatusFormatError, decode_status
 
@@ -243,19 +242,13 @@ class SelectorNode(Node):
                                    f'{self.planner.discarded} discarded')
 
 
+def _run_until_done(node: SelectorNode) -> None:
+    while rclpy.ok() and not node.done:
+        rclpy.spin_once(node, timeout_sec=0.1)
+
+
 def main(args: list[str] | None = None) -> None:
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = SelectorNode()
-        while rclpy.ok() and not node.done:
-            rclpy.spin_once(node, timeout_sec=0.1)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    spin_node(SelectorNode, args, _run_until_done)
 
 
 if __name__ == '__main__':

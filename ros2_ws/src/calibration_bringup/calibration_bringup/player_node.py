@@ -51,7 +51,6 @@ from typing import Any
 import rclpy
 from rclpy.clock import Clock, ClockType
 from rclpy.duration import Duration
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.task import Future
@@ -61,7 +60,7 @@ from std_srvs.srv import Trigger
 from calibration_interfaces import mcap_reader
 from calibration_interfaces.contract import BY_NAME
 from calibration_interfaces.mcap_reader import QosOffer
-from calibration_interfaces.node_util import declare_settings, message_class
+from calibration_interfaces.node_util import declare_settings, message_class, spin_node
 
 from .node_settings import PlayerSettings
 
@@ -278,19 +277,13 @@ class BagPlayerNode(Node):
         return ok
 
 
+def _play(node: BagPlayerNode) -> None:
+    rclpy.spin_until_future_complete(node, node.finished)
+    node.wait_for_acks()   # do not exit with reliable messages still in flight
+
+
 def main(args: list[str] | None = None) -> None:
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = BagPlayerNode()
-        rclpy.spin_until_future_complete(node, node.finished)
-        node.wait_for_acks()   # do not exit with reliable messages still in flight
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    spin_node(BagPlayerNode, args, _play)
 
 
 if __name__ == '__main__':

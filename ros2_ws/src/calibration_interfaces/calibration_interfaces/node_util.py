@@ -143,17 +143,19 @@ def message_class(type_name: str) -> type:
         raise ImportError(f'message type {type_name!r} is not installed: {exc}') from exc
 
 
-def spin_node(make_node: Callable[[], Node], args: list[str] | None = None) -> None:
+def spin_node(make_node: Callable[[], Node], args: list[str] | None = None,
+              run: Callable[[Node], None] | None = None) -> None:
     """A node executable's ``main``: init, spin until Ctrl-C or shutdown, destroy the node, shut down.
 
-    SIGINT and SIGTERM end the spin (rclpy's handlers shut the context down); ``destroy_node``
-    then runs, so a node can finish its files or close its servers there.
+    ``run(node)`` drives the node (default ``rclpy.spin``: until shutdown); a node that ends by
+    itself passes its own loop. SIGINT and SIGTERM end it (rclpy's handlers shut the context
+    down); ``destroy_node`` then runs, so a node can finish its files or close its servers there.
     """
     rclpy.init(args=args)
     node = None
     try:
         node = make_node()
-        rclpy.spin(node)
+        (rclpy.spin if run is None else run)(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:

@@ -134,3 +134,32 @@ def test_contract_qos() -> None:
     assert contract.topic('/camera/left/pose').latched and contract.topic('/camera/left/image_raw').sensor
     with pytest.raises(KeyError, match='/nope'):
         qos_profile('/nope')
+
+
+def test_spin_node_runs_the_given_loop_then_destroys_the_node_and_shuts_down(monkeypatch) -> None:
+    import rclpy
+    from rclpy.node import Node
+
+    from calibration_interfaces.node_util import spin_node
+
+    monkeypatch.setenv('ROS_DOMAIN_ID', '151')      # outside the fixtures' 1..100
+    events: list[str] = []
+
+    class Probe(Node):
+        def __init__(self) -> None:
+            super().__init__('spin_node_probe')
+
+        def destroy_node(self) -> None:
+            events.append('destroyed')
+            super().destroy_node()
+
+    def run(node: Node) -> None:
+        assert rclpy.ok() and node.get_name() == 'spin_node_probe'
+        events.append('ran')
+
+    spin_node(Probe, ['probe'], run)
+    assert events == ['ran', 'destroyed'] and not rclpy.ok()
+    # A failing constructor still shuts rclpy down (and has no node to destroy).
+    with pytest.raises(RuntimeError, match='boom'):
+        spin_node(lambda: (_ for _ in ()).throw(RuntimeError('boom')), ['probe'])
+    assert not rclpy.ok()

@@ -40,17 +40,15 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import rclpy
 from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped
 from numpy.typing import NDArray
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 
 from body_schema import load_robot
 from calibration_interfaces.contract import SENSOR
 from calibration_interfaces.messages import matrix_to_pose_msg, pose_msg_to_matrix
-from calibration_interfaces.node_util import WarnOnce, declare_settings, qos_profile
+from calibration_interfaces.node_util import WarnOnce, declare_settings, qos_profile, spin_node
 from calibration_interfaces.noise import NoiseSettings, PoseDependentSettings
 from calibration_interfaces.parameters import setting
 
@@ -210,15 +208,7 @@ class DetectorNode(Node):
 
 
 def main(args: list[str] | None = None) -> None:
-    rclpy.init(args=args)
-    node = DetectorNode()
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
+    spin_node(DetectorNode, args)
 
 
 if __name__ == '__main__':

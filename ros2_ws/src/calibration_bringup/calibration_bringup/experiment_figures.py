@@ -138,6 +138,16 @@ def _pm(values: NDArray[np.float64], digits: int) -> str:
     return f'{v.mean():.{digits}f} +- {v.std():.{digits}f}' if v.size > 1 else f'{v.mean():.{digits}f}'
 
 
+def _relative_to_al(data: dict[str, MethodRuns], name: str, column: str) -> str:
+    """Mean final ``column`` of ``name`` over AL's with the same noise model (AL-CN for the CN
+    methods), two decimals; ``'-'`` for AL itself, without AL, or when AL's mean is not positive."""
+    ref = 'AL-CN' if name.endswith('-CN') else 'AL'
+    if ref not in data or name == ref:
+        return '-'
+    base = np.nanmean(data[ref].final(column))
+    return f'{np.nanmean(data[name].final(column)) / base:.2f}' if base > 0 else '-'
+
+
 def paired_difference(first: MethodRuns, second: MethodRuns, column: str) -> tuple[int, float, int, float]:
     """Paired final values of two methods over their shared repetitions.
 
@@ -181,24 +191,16 @@ def summary_markdown(data: dict[str, MethodRuns], system: str | None = None) -> 
              '| movement / AL | discarded | rejected by the gate |',
              '|---|---|---|---|---|---|---|---|---|']
     for name, m in data.items():
-        ref_name = 'AL-CN' if name.endswith('-CN') else 'AL'
-        ratio = '-'
-        if ref_name in data and name != ref_name:
-            ref = np.nanmean(data[ref_name].final('movement_deg'))
-            ratio = f'{np.nanmean(m.final("movement_deg")) / ref:.2f}' if ref > 0 else '-'
         lines.append(f'| {name} | {m.n_runs} | {_pm(m.final("position_mm"), 2)} | '
                      f'{_pm(m.final("orientation_deg"), 2)} | {_pm(m.columns["position_mm"][:, 0], 1)} | '
-                     f'{_pm(m.final("movement_deg"), 0)} | {ratio} | {_pm(m.final("discarded"), 1)} | '
-                     f'{_pm(m.final("rejected"), 1)} |')
+                     f'{_pm(m.final("movement_deg"), 0)} | {_relative_to_al(data, name, "movement_deg")} | '
+                     f'{_pm(m.final("discarded"), 1)} | {_pm(m.final("rejected"), 1)} |')
     lines += ['', '| method | position [mm] median | orientation [deg] median | error / AL (mean position) |',
               '|---|---|---|---|']
     for name, m in data.items():
-        ref = 'AL-CN' if name.endswith('-CN') else 'AL'
-        ratio = '-'
-        if ref in data and name != ref:
-            ratio = f'{np.nanmean(m.final("position_mm")) / np.nanmean(data[ref].final("position_mm")):.2f}'
         lines.append(f'| {name} | {np.nanmedian(m.final("position_mm")):.2f} | '
-                     f'{np.nanmedian(m.final("orientation_deg")):.2f} | {ratio} |')
+                     f'{np.nanmedian(m.final("orientation_deg")):.2f} | '
+                     f'{_relative_to_al(data, name, "position_mm")} |')
     pairs = [(a, b) for a, b in (('AL', 'R'), ('AL', 'AL-CN'), ('UCSAL', 'UCSAL-CN'), ('CCSAL', 'CCSAL-CN'))
              if a in data and b in data]
     if pairs:

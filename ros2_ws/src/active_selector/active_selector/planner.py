@@ -145,14 +145,9 @@ class Planner:
                                penalty_a=s.penalty_a, penalty_b=s.penalty_b, occlusion_mode=s.occlusion_mode,
                                criterion=s.criterion, box_configs=self.box_configs)
         if self.visibility is not None:
-            tried = [a for a in self.history if a.outcome is not Outcome.UNREACHABLE]
-            if tried:
-                box = self.model.calibration_box
-                q = np.clip([a.reached for a in tried], box[:, 0], box[:, 1])   # as the occlusion model has them
-                cost.visibility_weight = self.occlusion.geometric_evidence(
-                    q, [a.detected for a in tried], cost.visibility_probability(q))
-            else:
-                cost.visibility_weight = 0.5
+            tried, _ = self.occlusion.attempts
+            cost.visibility_weight = (self.occlusion.geometric_evidence(cost.visibility_probability(tried))
+                                      if len(tried) else 0.5)
         return cost
 
     def select(self, dh: ArrayLike | None, P: ArrayLike | None,  # noqa: N803

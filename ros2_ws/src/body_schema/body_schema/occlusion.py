@@ -63,11 +63,18 @@ class OcclusionModel:
         self._u = np.zeros((0, box.shape[0]))       # normalised visited configurations
         self._s = np.zeros(0)                        # successes at each
         self._f = np.zeros(0)                        # failures at each
+        self._attempts: list[NDArray[np.float64]] = []   # every attempt in order (joint angles) ...
+        self._seen: list[bool] = []                      # ... and its outcome
 
     @property
     def n_configs(self) -> int:
         """Distinct configurations with recorded attempts."""
         return self._u.shape[0]
+
+    @property
+    def attempts(self) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+        """Every recorded attempt in order: configurations (K, L) and whether each saw the hand (K,)."""
+        return (np.array(self._attempts).reshape(-1, self.lower.size), np.array(self._seen, dtype=bool))
 
     @property
     def counts(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -87,6 +94,8 @@ class OcclusionModel:
         theta = np.asarray(theta, dtype=float)
         if theta.shape != self.lower.shape or not np.all(np.isfinite(theta)):
             raise ValueError(f'theta must be {self.lower.size} finite joint angles, got {theta!r}')
+        self._attempts.append(theta.copy())
+        self._seen.append(bool(success))
         u = self.normalise(theta)
         if self.n_configs:
             hit = np.nonzero(np.all(np.abs(self._u - u) < 1e-9, axis=1))[0]
@@ -109,9 +118,12 @@ class OcclusionModel:
         ndarray, shape (K,) or (M, K)
         """
         u = self.normalise(theta)
+        return self._kernel(np.atleast_2d(u), self._u).reshape(u.shape[:-1] + (self.n_configs,))
+
+    def _kernel(self, u: NDArray[np.float64], v: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Kernel matrix (N, K) between normalised configurations (N, L) and (K, L)."""
         # cdist: ~10x faster than broadcasting (M, K, L) for the selector's thousands of candidates.
-        d2 = cdist(np.atleast_2d(u), self._u, 'sqeuclidean').reshape(u.shape[:-1] + (self.n_configs,))
-        return np.exp(-0.5 * d2 / self.length_scale ** 2)
+        return np.exp(-0.5 * cdist(u, v, 'sqeuclidean') / self.length_scale ** 2)
 
     def posterior(self, theta: ArrayLike, prior: ArrayLike | None = None) -> tuple[NDArray[np.float64],
                                                                                   NDArray[np.float64]]:
@@ -129,8 +141,8 @@ class OcclusionModel:
             b0 = c - a0
         return k @ self._s + a0, k @ self._f + b0
 
-    def geometric_evidence(self, thetas: ArrayLike, seen: ArrayLike, p_geometric: ArrayLike) -> float:
-        """Posterior probability of the geometric prior against the flat one, from a run's attempts.
+    def geometric_evidence(self, p_geometric: ArrayLike) -> float:
+        """Posterior probability of the geometric prior against the flat one, from the recorded attempts.
 
         Bayesian model comparison (even prior odds) by prequential likelihood: attempt ``k`` is
         predicted by this kernel model from attempts ``0 .. k-1`` only, once with the flat prior
@@ -140,27 +152,23 @@ class OcclusionModel:
 
         Parameters
         ----------
-        thetas : array_like, shape (K, L)
-            Attempted configurations, in order.
-        seen : array_like, shape (K,)
-            Whether each attempt detected the hand.
         p_geometric : array_like, shape (K,)
-            Geometric detection probabilities at ``thetas`` (the current estimate's), in (0, 1).
+            Geometric detection probabilities at the configurations of :attr:`attempts` (as the
+            current estimate predicts them), in (0, 1).
 
         Returns
         -------
         float
             In [0, 1]; 0.5 without attempts.
         """
-        u = self.normalise(np.asarray(thetas, dtype=float).reshape(-1, self.lower.size))
-        seen = np.asarray(seen, dtype=bool).ravel()
+        thetas, seen = self.attempts
         p = np.asarray(p_geometric, dtype=float).ravel()
-        if not u.shape[0] == seen.size == p.size:
-            raise ValueError(f'thetas, seen and p_geometric must have one entry per attempt, got '
-                             f'{u.shape[0]}, {seen.size} and {p.size}')
+        if p.size != seen.size:
+            raise ValueError(f'p_geometric must have one entry per recorded attempt ({seen.size}), got {p.size}')
         if np.any(~((p > 0) & (p < 1))):
             raise ValueError(f'p_geometric must lie in (0, 1), got values in [{p.min()}, {p.max()}]')
-        k = np.tril(np.exp(-0.5 * cdist(u, u, 'sqeuclidean') / self.length_scale ** 2), -1)
+        u = self.normalise(thetas)
+        k = np.tril(self._kernel(u, u), -1)
         s, f = k @ seen, k @ ~seen                                  # evidence before each attempt
         c = self.a0 + self.b0
         q_geo = (s + c * p) / (s + f + c)

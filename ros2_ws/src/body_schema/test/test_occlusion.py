@@ -130,22 +130,39 @@ def test_prior_mean_replaces_the_flat_one_with_the_same_strength():
 
 
 
+def _attempted(q, seen):
+    m = OcclusionModel(BOX, length_scale=0.1, a0=1.0, b0=2.0)
+    for theta, ok in zip(q, seen):
+        m.add(theta, ok)
+    return m
+
+
+def test_attempts_are_kept_in_order_beside_the_merged_counts():
+    m = OcclusionModel(BOX)
+    t1, t2 = np.array([0.0, 1.0, 0.0]), np.array([0.5, 0.5, 0.1])
+    for theta, ok in ((t1, True), (t2, False), (t1, False)):
+        m.add(theta, ok)
+    q, seen = m.attempts
+    np.testing.assert_array_equal(q, [t1, t2, t1])
+    np.testing.assert_array_equal(seen, [True, False, False])
+    assert m.n_configs == 2
+
+
 def test_geometric_evidence_trusts_predictions_that_come_true():
     rng = np.random.default_rng(3)
-    m = OcclusionModel(BOX, length_scale=0.1, a0=1.0, b0=2.0)
     q = BOX[:, 0] + rng.random((40, 3)) * (BOX[:, 1] - BOX[:, 0])
     p = rng.uniform(0.02, 0.9, 40)
     seen = rng.random(40) < p                              # outcomes drawn from the prediction
-    assert m.geometric_evidence(q, seen, p) > 0.95
-    assert m.geometric_evidence(q, ~seen, p) < 0.01        # the opposite outcomes
-    assert m.geometric_evidence(q[:0], seen[:0], p[:0]) == pytest.approx(0.5)
+    assert _attempted(q, seen).geometric_evidence(p) > 0.95
+    assert _attempted(q, ~seen).geometric_evidence(p) < 0.01        # the opposite outcomes
+    assert _attempted(q[:0], seen[:0]).geometric_evidence(p[:0]) == pytest.approx(0.5)
     # Repeated failures where geometry expects the hand: two far-apart misses outweigh even odds.
-    assert m.geometric_evidence(BOX.T, [False, False], [0.9, 0.9]) < 0.2
+    far = _attempted(BOX.T, [False, False])
+    assert far.geometric_evidence([0.9, 0.9]) < 0.2
     # The same misses next to each other: the kernel predicts the second, so it costs geometry less.
-    near = np.stack([BOX[:, 0], BOX[:, 0] + 1e-3])
-    assert m.geometric_evidence(near, [False, False], [0.9, 0.9]) > m.geometric_evidence(BOX.T, [False, False],
-                                                                                          [0.9, 0.9])
+    near = _attempted(np.stack([BOX[:, 0], BOX[:, 0] + 1e-3]), [False, False])
+    assert near.geometric_evidence([0.9, 0.9]) > far.geometric_evidence([0.9, 0.9])
     with pytest.raises(ValueError, match=r'\(0, 1\).*1\.0'):
-        m.geometric_evidence(q[:1], [True], [1.0])
-    with pytest.raises(ValueError, match='one entry per attempt.*2, 1 and 1'):
-        m.geometric_evidence(q[:2], [True], [0.5])
+        _attempted(q[:1], [True]).geometric_evidence([1.0])
+    with pytest.raises(ValueError, match=r'one entry per recorded attempt \(2\), got 1'):
+        _attempted(q[:2], [True, True]).geometric_evidence([0.5])

@@ -17,6 +17,7 @@ Run from the repository root with the workspace's venv, e.g.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import pickle
@@ -257,14 +258,10 @@ def study(variants: dict[str, dict[str, object]], seeds: Sequence[int], iteratio
 
     tasks = [(name, v, seed, iterations, estimator) for name, v in variants.items() for seed in seeds]
     results: dict[str, dict[int, tuple[float, ...]]] = {name: {} for name in variants}
-    if jobs > 1:
-        with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context('spawn')) as pool:
-            for name, seed, final in pool.map(_run_one, tasks):
-                results[name][seed] = final
-                print(json.dumps({'variant': name, 'seed': seed, 'final': final}), file=sys.stderr, flush=True)
-    else:
-        for task in tasks:
-            name, seed, final = _run_one(task)
+    with contextlib.ExitStack() as stack:
+        runs = map(_run_one, tasks) if jobs <= 1 else stack.enter_context(
+            ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context('spawn'))).map(_run_one, tasks)
+        for name, seed, final in runs:
             results[name][seed] = final
             print(json.dumps({'variant': name, 'seed': seed, 'final': final}), file=sys.stderr, flush=True)
     rows = []

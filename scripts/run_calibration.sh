@@ -70,6 +70,7 @@ case "$estimator" in map|ekf) ;; *) die "--estimator must be map or ekf, got '$e
 [[ "$image_size" =~ ^([0-9]+)x([0-9]+)$ ]] || die "--image-size must look like 640x480, got '$image_size'"
 width=${BASH_REMATCH[1]}; height=${BASH_REMATCH[2]}
 [[ "$rtf" =~ ^[0-9]*\.?[0-9]+$ ]] || die "--rtf must be a non-negative number, got '$rtf'"
+[[ "$rtf" == *.* ]] || rtf="$rtf.0"   # a double parameter: '4' would be declared an integer and refused
 [[ "$viz_port" =~ ^[0-9]+$ ]] && (( viz_port >= 1 && viz_port <= 65535 )) || die "--viz-port must be a port number, got '$viz_port'"
 timeout=${timeout:-$((60 + 20 * iterations))}
 body_change_at=${body_change_at:-$(( (iterations + 1) / 2 + 1 ))}
@@ -137,6 +138,7 @@ start() {   # start NAME PKG EXE ARGS...: its own process group, so a stop reach
   order+=("$name")
 }
 alive() { kill -0 "${pid[$1]}" 2>/dev/null; }
+killed=()   # nodes stop had to SIGKILL: their files and exports may be missing
 all_alive() {   # all_alive NAME...: fail the run on the first one that exited
   local name rc
   for name in "$@"; do
@@ -151,6 +153,7 @@ stop() {    # stop NAME...: SIGINT (nodes finish files and exports), then SIGKIL
     if alive "$name"; then
       echo "run_calibration: $name did not stop on SIGINT within 15 s; killed" >&2
       kill -KILL -- "-${pid[$name]}" 2>/dev/null || true
+      killed+=("$name")
     fi
     wait "${pid[$name]}" 2>/dev/null || true
   done
@@ -241,3 +244,9 @@ calibration_cmd=$(command_of calibration_bringup calibration_report)
 $calibration_cmd --bag "$bag" --output "$output" --wall-seconds "$wall" \
   --title "$strategy, $iterations iterations, seed $seed, noise $noise, estimator $estimator, ${width}x${height}" \
   --params-file "$config/estimator.yaml" --noise-model "$noise" --estimator "$estimator"
+# A node killed at the end may have lost its export (estimator) or the end of the bag (recorder):
+# the report above says what the bag holds, but the run is not a clean one.
+if [ "${#killed[@]}" -gt 0 ]; then
+  echo "run_calibration: ${killed[*]} had to be killed; the run's outputs may be incomplete" >&2
+  exit 1
+fi

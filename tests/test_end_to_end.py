@@ -38,8 +38,9 @@ def run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, subprocess.Comp
     out = tmp_path_factory.mktemp('run')
     env = dict(os.environ, PATH=f'{Path(sys.executable).parent}:{os.environ["PATH"]}')
     env.pop('ROS_DOMAIN_ID', None)
+    # '--rtf 2', not '2.0': the launcher passes it on as the double parameter the sim declares.
     proc = subprocess.run([str(SCRIPT), '--strategy', 'al', '--iterations', str(ITERATIONS), '--seed', '3',
-                           '--rtf', '2.0', '--output', str(out), '--timeout', '240'],
+                           '--rtf', '2', '--output', str(out), '--timeout', '240'],
                           env=env, capture_output=True, text=True, timeout=300)
     return out, proc
 

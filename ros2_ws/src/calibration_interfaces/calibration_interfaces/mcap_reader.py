@@ -206,15 +206,7 @@ def _topic_summary(ch: Channel, schema: Schema | None, count: int) -> TopicSumma
 
 
 def _open(path: str | os.PathLike[str]) -> Any:
-    """The file opened for reading, after checking that it is an MCAP file.
-
-    Raises
-    ------
-    FileNotFoundError
-        If ``path`` does not exist.
-    BagError
-        If it is empty or does not start with the MCAP magic.
-    """
+    """The file opened for reading; FileNotFoundError if missing, :class:`BagError` unless it starts as MCAP."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f'no bag at {path}')
@@ -444,10 +436,8 @@ def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str], *, compres
 
     Raises
     ------
-    FileNotFoundError
-        If ``src`` does not exist.
-    BagError
-        If ``src`` is empty or not an MCAP file.
+    FileNotFoundError, BagError
+        As :func:`summary`, for ``src``.
     ValueError
         If ``dst`` is ``src``, or on an unknown compression or a non-positive chunk size.
     """

@@ -159,11 +159,17 @@ def test_one_joint_state_stamped_in_the_future_does_not_stall_the_pairing(setup)
     assert pairer.counters['future_joint_states'] == 1 and est.counters['updates'] == 3
 
 
-def test_a_hand_pose_stamped_in_the_future_is_refused_and_counted_not_kept_pending(setup):
+@pytest.fixture
+def commanded(setup):
+    """(model, pairer, feeder, q): the arm commanded to ``q``."""
     model, est, pairer = setup
-    feeder = MessageFeeder(pairer, model.joint_names)
     q = np.radians([-30, 30, 0, 45, 0, 0, 0])
     pairer.command(q)
+    return model, pairer, MessageFeeder(pairer, model.joint_names), q
+
+
+def test_a_hand_pose_stamped_in_the_future_is_refused_and_counted_not_kept_pending(commanded):
+    model, pairer, feeder, q = commanded
     _rest_fed(feeder, q, 0.0, 0.3)
     for n in (1, 2):
         with pytest.raises(MessageError, match=rf'/hand_pose stamp 500\.000 s .* ahead .*\({n} so far\)'):
@@ -171,10 +177,8 @@ def test_a_hand_pose_stamped_in_the_future_is_refused_and_counted_not_kept_pendi
     assert pairer.counters['future_hand_poses'] == 2 and pairer._pending == []
 
 
-def test_images_that_never_get_their_joint_states_are_reported_dropped(setup):
-    model, est, pairer = setup
-    q = np.radians([-30, 30, 0, 45, 0, 0, 0])
-    pairer.command(q)
+def test_images_that_never_get_their_joint_states_are_reported_dropped(commanded):
+    model, pairer, feeder, q = commanded
     _rest(pairer, q, 0.0, 0.3)
     pose = model.forward_kinematics(q)
     out = []
@@ -185,11 +189,8 @@ def test_images_that_never_get_their_joint_states_are_reported_dropped(setup):
     assert pairer.counters['pending_dropped'] == 2
 
 
-def test_the_clock_stepping_back_restarts_the_pairing_on_the_new_timeline(setup):
-    model, est, pairer = setup
-    feeder = MessageFeeder(pairer, model.joint_names)
-    q = np.radians([-30, 30, 0, 45, 0, 0, 0])
-    pairer.command(q)
+def test_the_clock_stepping_back_restarts_the_pairing_on_the_new_timeline(commanded):
+    model, pairer, feeder, q = commanded
     _rest_fed(feeder, q, 100.0, 100.3)
     assert feeder.hand_pose(_hp(model.forward_kinematics(q), 100.6), now=100.3) == []   # waits
     # The simulator restarts at 0: the waiting image belongs to the old timeline.

@@ -101,7 +101,7 @@ def test_saved_view_holds_both_arms_the_frames_observations_errors_and_layout(ba
     rrd = tmp_path / 'view.rrd'
     assert bag_view.main([str(bag), '--save', str(rrd)]) == 0
     reader = RrdReader(rrd)
-    entities = {chunk.entity_path for chunk in reader.stream()}
+    entities = _entities(rrd)
     real = [e for e in entities if e.startswith(f'/{ROBOT.name}/visual_geometries/')]
     ghost = [e for e in entities if e.startswith(f'/{bag_view.ESTIMATE_ENTITY}/') and 'visual_geometries/estimate' in e]
     assert real, f'no meshes of the real arm from /robot_description among {sorted(entities)}'
@@ -111,6 +111,24 @@ def test_saved_view_holds_both_arms_the_frames_observations_errors_and_layout(ba
     assert len(reader.blueprints()) == 1
 
 
-def test_a_missing_bag_is_one_line_and_exit_2(tmp_path: Path, capsys) -> None:
+def _entities(rrd: Path) -> set[str]:
+    from rerun.chunk import RrdReader
+
+    return {chunk.entity_path for chunk in RrdReader(rrd).stream()}
+
+
+def test_a_bag_cut_by_a_crash_is_shown_up_to_what_survived(bag: Path, tmp_path: Path, capsys) -> None:
+    cut = tmp_path / 'cut.mcap'
+    data = bag.read_bytes()
+    cut.write_bytes(data[:len(data) * 9 // 10])          # no summary, no footer: as after a SIGKILL
+    assert bag_view.main([str(cut), '--save', str(tmp_path / 'cut.rrd')]) == 0
+    assert 'bag truncated' in capsys.readouterr().err
+    assert {'/tf', f'/{ROBOT.name}'} <= _entities(tmp_path / 'cut.rrd')
+
+
+def test_a_missing_or_foreign_file_is_one_line_and_exit_2(tmp_path: Path, capsys) -> None:
     assert bag_view.main([str(tmp_path / 'nope.mcap'), '--save', str(tmp_path / 'x.rrd')]) == 2
-    assert 'no such bag' in capsys.readouterr().err
+    assert 'no bag at' in capsys.readouterr().err
+    (tmp_path / 'notes.txt').write_text('not a bag')
+    assert bag_view.main([str(tmp_path / 'notes.txt'), '--save', str(tmp_path / 'x.rrd')]) == 2
+    assert 'not an MCAP file' in capsys.readouterr().err

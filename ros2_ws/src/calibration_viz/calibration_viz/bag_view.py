@@ -34,7 +34,7 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from calibration_interfaces.contract import ESTIMATE_FRAME_PREFIX
-from calibration_interfaces.mcap_reader import read_messages
+from calibration_interfaces.mcap_reader import BagError, read_messages, recover, summary
 from calibration_viz.scene import covariance_ellipsoid
 
 __all__ = ['Observations', 'estimate_urdf', 'hand_observations', 'error_curve', 'blueprint', 'log_bag', 'main']
@@ -129,6 +129,18 @@ def log_bag(bag: str | Path, metrics_csv: str | Path | None = None) -> None:
     import rerun as rr
 
     bag = Path(bag)
+    if not summary(bag).complete:
+        # Rerun's importer needs the summary a killed recorder never wrote: give it a recovered
+        # copy, kept until exit (the importer reads it in the background).
+        import atexit
+        import shutil
+        import tempfile
+
+        tmp = tempfile.mkdtemp(prefix='bag_view_')
+        atexit.register(shutil.rmtree, tmp, ignore_errors=True)
+        whole = Path(tmp) / bag.name
+        print(f'bag_view: {recover(bag, whole).loss}', file=sys.stderr)
+        bag = whole
     rr.log_file_from_path(bag)
     urdf = estimate_urdf(bag)
     if urdf is not None:
@@ -226,8 +238,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--wait', type=float, default=60.0, help='screenshot: seconds to let the viewer load [s]')
     ap.add_argument('--port', type=int, default=9090, help='web viewer port (gRPC: port + 1)')
     args = ap.parse_args(argv)
-    if not args.bag.is_file():
-        print(f'bag_view: no such bag: {args.bag}', file=sys.stderr)
+    try:
+        summary(args.bag)
+    except (FileNotFoundError, BagError) as e:
+        print(f'bag_view: {e}', file=sys.stderr)
         return 2
     metrics = args.metrics or (args.bag.parent / 'metrics.csv')
     metrics = metrics if metrics.is_file() else None

@@ -110,7 +110,7 @@ class Identifiability:
 
 def _combination(v: NDArray[np.float64], names: tuple[str, ...]) -> str:
     terms = []
-    for i in np.argsort(-np.abs(v), kind='stable'):
+    for i in sorted(range(len(v)), key=lambda k: (-round(abs(float(v[k])), 9), float(v[k]) < 0)):
         c = float(v[i])
         if abs(c) < _COEF_TOL:
             continue

@@ -10,8 +10,10 @@ usage() {
   cat <<'EOF'
 Usage: scripts/run_calibration.sh [options]
 
-Runs one online calibration of the simulated iCub right arm and records it to MCAP.
+Runs one online calibration of a simulated arm (the iCub right arm by default) and records it to MCAP.
 
+  --robot R         robot description: a packaged name (icub_right_arm, ur5e) or a YAML path,
+                    passed to every node's robot parameter             (default: icub_right_arm)
   --strategy S      random | al | ucsal | ccsal                         (default: al)
   --iterations N    measurement attempts (selector iterations)          (default: 50)
   --seed S          seed of the real robot, the initial guess and the selector (default: 1)
@@ -22,7 +24,7 @@ Runs one online calibration of the simulated iCub right arm and records it to MC
                     (joint.a|d [m] or joint.alpha|offset [deg], signed increments)
   --body-change-at N  the iteration at whose command the body changes (default: half the iterations)
   --rtf F           simulated seconds per wall second; 0 = as fast as possible (default: 1.0)
-  --image-size WxH  camera resolution, intrinsics scale with it         (default: 320x240)
+  --image-size WxH  camera resolution, intrinsics scale with it         (default: the description's camera)
   --no-images       do not record the camera images (smaller bag)
   --domain-id N     ROS_DOMAIN_ID of the run (default: random in 100-199, localhost only)
   --timeout SEC     give up after this many wall seconds (default: 60 + 20 per iteration)
@@ -36,11 +38,12 @@ DH YAML and URDF), DIR/progress.jsonl and DIR/logs/<node>.log. Exit status 0 on 
 EOF
 }
 
-strategy=al; iterations=50; seed=1; output=results/run; noise=pose_dependent; rtf=1.0; estimator=map
+robot=icub_right_arm; strategy=al; iterations=50; seed=1; output=results/run; noise=pose_dependent; rtf=1.0; estimator=map
 body_change=""; body_change_at=""
-image_size=320x240; record_images=1; domain_id=""; timeout=""; viz=0; viz_port=8080
+image_size=""; record_images=1; domain_id=""; timeout=""; viz=0; viz_port=8080
 while [ $# -gt 0 ]; do
   case "$1" in
+    --robot) robot=$2; shift 2 ;;
     --strategy) strategy=$2; shift 2 ;;
     --iterations) iterations=$2; shift 2 ;;
     --seed) seed=$2; shift 2 ;;
@@ -67,8 +70,13 @@ case "$noise" in pose_dependent|constant) ;; *) die "--noise must be pose_depend
 case "$estimator" in map|ekf) ;; *) die "--estimator must be map or ekf, got '$estimator'" ;; esac
 [[ "$iterations" =~ ^[1-9][0-9]*$ ]] || die "--iterations must be a positive integer, got '$iterations'"
 [[ "$seed" =~ ^[0-9]+$ ]] || die "--seed must be a non-negative integer, got '$seed'"
-[[ "$image_size" =~ ^([0-9]+)x([0-9]+)$ ]] || die "--image-size must look like 640x480, got '$image_size'"
-width=${BASH_REMATCH[1]}; height=${BASH_REMATCH[2]}
+[[ -n "$robot" ]] || die "--robot must name a robot description"
+size_args=(); size_text="the description's image size"
+if [ -n "$image_size" ]; then
+  [[ "$image_size" =~ ^([0-9]+)x([0-9]+)$ ]] || die "--image-size must look like 640x480, got '$image_size'"
+  size_args=(-p "image_width:=${BASH_REMATCH[1]}" -p "image_height:=${BASH_REMATCH[2]}")
+  size_text=$image_size
+fi
 [[ "$rtf" =~ ^[0-9]*\.?[0-9]+$ ]] || die "--rtf must be a non-negative number, got '$rtf'"
 [[ "$rtf" == *.* ]] || rtf="$rtf.0"   # a double parameter: '4' would be declared an integer and refused
 [[ "$viz_port" =~ ^[0-9]+$ ]] && (( viz_port >= 1 && viz_port <= 65535 )) || die "--viz-port must be a port number, got '$viz_port'"
@@ -168,13 +176,13 @@ fail() {    # fail NAME WHY: the node's log tail, stop everything, exit 1
   exit 1
 }
 
-recorder_args=(-p "output:=$bag")
+recorder_args=(-p "output:=$bag" -p "robot:=$robot")
 sim_args=()       # rcl refuses an empty value (-p body_change:=), so the change is passed only when asked for
 [ -z "$body_change" ] || sim_args=(-p "body_change:=$body_change" -p "body_change_at_command:=$body_change_at")
 [ "$record_images" = 1 ] || recorder_args+=(-p "exclude_images:=true")
 
-echo "run_calibration: $strategy, $iterations iterations, seed $seed, noise $noise, estimator $estimator," \
-     "${width}x${height}, rtf $rtf, ROS_DOMAIN_ID $ROS_DOMAIN_ID -> $output"
+echo "run_calibration: $robot, $strategy, $iterations iterations, seed $seed, noise $noise, estimator $estimator," \
+     "$size_text, rtf $rtf, ROS_DOMAIN_ID $ROS_DOMAIN_ID -> $output"
 [ -z "$body_change" ] || echo "run_calibration: the real robot changes by '$body_change' at iteration $body_change_at"
 wall0=$SECONDS
 # The recorder first, so every latched fact (true table, initial estimate, camera poses) is in the bag.
@@ -183,15 +191,16 @@ start recorder calibration_bringup recorder_node --ros-args --params-file "$conf
 for ((t = 0; t < 200; t++)); do [ -s "$bag" ] && break; alive recorder || fail recorder "exited at start"; sleep 0.1; done
 [ -s "$bag" ] || fail recorder "did not open $bag within 20 s"
 start sim icub_sim_bridge sim_node --ros-args --params-file "$config/sim.yaml" \
-  -p "perturb_seed:=$seed" -p "real_time_factor:=$rtf" -p "image_width:=$width" -p "image_height:=$height" \
+  -p "robot:=$robot" -p "perturb_seed:=$seed" -p "real_time_factor:=$rtf" "${size_args[@]}" \
   "${sim_args[@]}"
 if [ "$viz" = 1 ]; then   # latched facts (true table, camera poses, estimate) reach it whenever it starts
-  start viz calibration_viz viz_node --ros-args --params-file "$viz_config/viz.yaml" -p "port:=$viz_port"
+  start viz calibration_viz viz_node --ros-args --params-file "$viz_config/viz.yaml" -p "port:=$viz_port" \
+    -p "robot:=$robot"
   echo "run_calibration: live 3D view at http://127.0.0.1:$viz_port (open it in a browser)"
 fi
-start detector marker_detector detector_node --ros-args --params-file "$config/detector.yaml"
+start detector marker_detector detector_node --ros-args --params-file "$config/detector.yaml" -p "robot:=$robot"
 start estimator dh_estimator estimator_node --ros-args --params-file "$config/estimator.yaml" \
-  -p "initial_seed:=$seed" -p "noise_model:=$noise" -p "estimator:=$estimator" \
+  -p "robot:=$robot" -p "initial_seed:=$seed" -p "noise_model:=$noise" -p "estimator:=$estimator" \
   -p "export_dir:=$output/model"
 # The selector last, once the recorder records every topic but the selector's own two (/arm/command,
 # /calibration/progress): nothing moves and the estimator does not update before the first command,
@@ -212,7 +221,7 @@ for ((t = 0; t < 200; t++)); do
 done
 recording_all || fail recorder "did not subscribe to the other nodes' topics within 20 s"
 start selector active_selector selector_node --ros-args --params-file "$config/selector.yaml" \
-  -p "strategy:=$strategy" -p "iterations:=$iterations" -p "seed:=$seed" -p "noise_model:=$noise" \
+  -p "robot:=$robot" -p "strategy:=$strategy" -p "iterations:=$iterations" -p "seed:=$seed" -p "noise_model:=$noise" \
   -p "progress_file:=$output/progress.jsonl"
 
 # --- Wait for the selector; a node that dies fails the run ----------------------------------
@@ -242,8 +251,8 @@ echo "run_calibration: finished in ${wall} s; writing the report"
 calibration_cmd=$(command_of calibration_bringup calibration_report)
 # shellcheck disable=SC2086  # the command line is words on purpose (ros2 run pkg exe)
 $calibration_cmd --bag "$bag" --output "$output" --wall-seconds "$wall" \
-  --title "$strategy, $iterations iterations, seed $seed, noise $noise, estimator $estimator, ${width}x${height}" \
-  --params-file "$config/estimator.yaml" --noise-model "$noise" --estimator "$estimator"
+  --title "$robot, $strategy, $iterations iterations, seed $seed, noise $noise, estimator $estimator, $size_text" \
+  --params-file "$config/estimator.yaml" --noise-model "$noise" --estimator "$estimator" --robot "$robot"
 # A node killed at the end may have lost its export (estimator) or the end of the bag (recorder):
 # the report above says what the bag holds, but the run is not a clean one.
 if [ "${#killed[@]}" -gt 0 ]; then

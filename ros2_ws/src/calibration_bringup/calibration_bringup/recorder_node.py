@@ -57,7 +57,8 @@ record_tf : bool
     Write ``/tf`` and ``/tf_static`` derived from the joint states, the real and estimated DH
     tables and the camera poses.
 robot : str
-    Robot description of those frames (packaged name or YAML path).
+    Robot description of those frames (packaged name or YAML path); contract camera topics of
+    cameras it does not have are left out.
 use_sim_time : bool
     Log times on ``/clock`` (the standard parameter of every node).
 """
@@ -147,6 +148,10 @@ class RecorderNode(Node):
         excluded = set(s.exclude) | (set(IMAGE_TOPICS) if s.exclude_images else set())
         self.wanted = [self.resolve_topic_name(t) for t in s.topics if t]
         self.wanted = [t for t in dict.fromkeys(self.wanted) if t not in excluded]
+        # Camera topics of cameras the robot does not have (the UR5e's one fixed camera: no
+        # /camera/right/...) would never be published: not waited for, not listed.
+        cameras = load_robot(s.robot).camera_names
+        self.wanted = [t for t in self.wanted if not (t.startswith('/camera/') and t.split('/')[2] not in cameras)]
         self._depth = s.queue_depth
         self._writer = McapBagWriter(self.output, compression=s.compression, chunk_size=s.chunk_size)
         self.counts = self._writer.counts

@@ -100,6 +100,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                     help="the estimator's noise_model during the run, if the launcher overrode the file's")
     ap.add_argument('--estimator', choices=list(ESTIMATORS),
                     help="the estimator during the run, if the launcher overrode the file's")
+    ap.add_argument('--robot', help="the run's robot description (packaged name or YAML path), if the launcher "
+                                    "overrode the file's")
     args = ap.parse_args(argv)
     out = args.output or args.bag.parent
     try:
@@ -108,6 +110,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             values['noise_model'] = args.noise_model
         if args.estimator is not None:
             values['estimator'] = args.estimator
+        if args.robot is not None:
+            values['robot'] = args.robot
         ev = evaluate_bag(args.bag, EvaluationSettings.from_parameters(values))
         write_csv(ev.rows, out / 'metrics.csv')
         plot_rows(ev.rows, out, title=args.title)

@@ -41,8 +41,10 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.stats import chi2
 
 from body_schema import load_robot, sampling
+from body_schema.identifiability import subspace_nees
 from body_schema.map_estimator import LOSSES
 from body_schema.metrics import PoseErrorEvaluator, expected_pose_errors
 from body_schema.noise import NOISE_MODELS
@@ -132,6 +134,11 @@ class Evaluation:
     bag: mcap_reader.BagSummary | None = None
     #: The pairing's time faults in the re-run (:attr:`~dh_estimator.pairing.ObservationPairer.counters`).
     pairing: dict[str, int] = field(default_factory=dict)
+    # What the box cannot identify (body_schema.identifiability), and the final offline
+    # estimate's NEES on the identifiable rest (chi-square with `identifiable` dof if consistent).
+    unidentifiable: tuple[str, ...] = ()
+    identifiable: int = 0
+    nees_identifiable: float = float('nan')
 
     @property
     def max_online_offline_difference(self) -> float:
@@ -253,8 +260,11 @@ def evaluate_bag(path: str | Path, settings: EvaluationSettings = EvaluationSett
                                  float(record['movement_deg']), int(record['discarded']), pos, ori, opos, oori,
                                  n_updates, float(record.get('selection_s', 0.0)),
                                  float(record.get('sim_time', 0.0)), *limit(dh, P)))
+    ident = estimator.identifiability
+    nees = subspace_nees(estimator.x - true_dh.ravel(), estimator.P, ident.identifiable_basis)
     return Evaluation(rows, estimator.dh.copy(), x0 if online is None else online, true_dh,
-                      estimator.counters, strategy, bag, dict(feeder.pairer.counters))
+                      estimator.counters, strategy, bag, dict(feeder.pairer.counters),
+                      tuple(ident.describe()) if ident.n_unidentifiable else (), ident.rank, nees)
 
 
 def write_csv(rows: Sequence[IterationRow], path: str | Path) -> Path:
@@ -325,7 +335,21 @@ def summary_text(ev: Evaluation) -> str:
             f'information limit {last.expected_position_mm:.2f} mm, {last.expected_orientation_deg:.2f} deg '
             '(the error the final covariance implies over the calibration box)\n'
             f'accumulated movement {last.movement_deg:.0f} deg; max |offline - online| DH difference '
-            f'{ev.max_online_offline_difference:.2e}')
+            f'{ev.max_online_offline_difference:.2e}'
+            + identifiability_text(ev))
+
+
+def identifiability_text(ev: Evaluation) -> str:
+    """Lines on what the box cannot identify and the NEES on what it can ('' for an old evaluation)."""
+    if not ev.identifiable:
+        return ''
+    n = ev.final_dh.size
+    band = chi2.ppf([0.025, 0.975], ev.identifiable)
+    text = (f'\nidentifiable {ev.identifiable} of {n} parameter combinations; final NEES on them '
+            f'{ev.nees_identifiable:.1f} (95% band {band[0]:.1f}-{band[1]:.1f})')
+    for line in ev.unidentifiable:
+        text += f'\nnot identifiable (held at the initial guess): {line}'
+    return text
 
 
 def _parser() -> argparse.ArgumentParser:

@@ -24,6 +24,7 @@ from body_schema.noise import NOISE_MODELS
 
 #: Launch arguments: name -> (default, description).
 ARGUMENTS: dict[str, tuple[str, str]] = {
+    'robot': ('icub_right_arm', 'robot description: a packaged name (icub_right_arm, ur5e) or a YAML path'),
     'strategy': ('al', 'random | al | ucsal | ccsal'),
     'iterations': ('50', 'measurement attempts (selector iterations)'),
     'seed': ('1', 'seed of the real robot, the initial guess and the selector'),
@@ -60,7 +61,7 @@ def node_specs(args: dict[str, str]) -> list[dict[str, Any]]:
     # The view's parameter file is its own package's (as run_calibration.sh --viz uses it).
     viz = [{'name': 'viz', 'package': 'calibration_viz', 'executable': 'viz_node', 'params_file': 'viz.yaml',
             'config_package': 'calibration_viz', 'parameters': {}}] if args['viz'].lower() == 'true' else []
-    return [
+    specs = [
         # The recorder first, so every latched fact (true table, initial estimate, camera poses) is in the bag.
         {'name': 'recorder', 'package': 'calibration_bringup', 'executable': 'recorder_node',
          'params_file': 'recorder.yaml',
@@ -81,6 +82,10 @@ def node_specs(args: dict[str, str]) -> list[dict[str, Any]]:
                         'noise_model': noise, 'progress_file': os.path.join(out, 'progress.jsonl')}},
         *viz,
     ]
+    # Every node reads the same description (as run_calibration.sh --robot passes it to each).
+    for spec in specs:
+        spec['parameters'] = {'robot': args['robot'], **spec['parameters']}
+    return specs
 
 
 def generate_launch_description() -> Any:

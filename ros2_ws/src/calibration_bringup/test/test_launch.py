@@ -72,7 +72,7 @@ def test_viz_adds_the_live_view_with_its_own_parameter_file(tmp_path: Path) -> N
 
 def test_every_override_is_declared_by_its_node(ros, tmp_path: Path) -> None:
     """A misspelt parameter would be silently ignored by a launched node."""
-    for s in _specs(tmp_path, noise='constant'):
+    for s in _specs(tmp_path, noise='constant', robot='ur5e', viz='true'):
         cls = _node_class(s['package'], s['executable'])
         overrides = [Parameter(k, value=v) for k, v in s['parameters'].items()]
         node = ros.add(cls(context=ros.context, parameter_overrides=overrides))

@@ -205,15 +205,18 @@ class CalibrationLoop:
             return self._match_outcome()
         return None
 
-    def bad_frame(self, t: float, reason: str) -> None:
+    def bad_frame(self, t: float, reason: str) -> bool:
         """A frame stamped ``t`` the detector could not judge (``reason``): not evidence either way.
 
-        Counted when it is one the iteration waits for; the next good frame decides instead.
+        Counted (returns True) when it is one the iteration waits for; the next judged frame
+        decides instead.
         """
         if self.phase is Phase.AWAITING_OUTCOME and self.detected is None \
                 and t >= self.t_settled + self.settings.settle_time:
             self.bad_frames += 1
             self.bad_reason = reason
+            return True
+        return False
 
     def estimator_outcome(self, outcome: Outcome | str, joints: ArrayLike, message: str = '') -> Iteration | None:
         """The estimator's verdict on an observation at configuration ``joints`` (L,) [rad].

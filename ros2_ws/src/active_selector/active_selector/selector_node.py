@@ -180,19 +180,19 @@ class SelectorNode(Node):
         try:
             self.dh = msg_to_table(msg, self.model.n_joints)
         except MessageFormatError as exc:
-            self.get_logger().warning(f'/body_schema/estimate ignored: {exc}')
+            self._warn('estimate', f'/body_schema/estimate ignored: {exc}')
 
     def on_covariance(self, msg: Float64MultiArray) -> None:
         try:
             self.P = msg_to_covariance(msg, self.model.n_params)
         except MessageFormatError as exc:
-            self.get_logger().warning(f'/body_schema/covariance ignored: {exc}')
+            self._warn('covariance', f'/body_schema/covariance ignored: {exc}')
 
     def on_camera_pose(self, msg: PoseStamped) -> None:
         try:
             self.camera_pose = pose_msg_to_matrix(msg.pose)
         except ValueError as exc:
-            self.get_logger().warning(f'camera pose ignored: {exc}')
+            self._warn('camera_pose', f'camera pose ignored: {exc}')
 
     def on_markers(self, msg: PoseArray) -> None:
         self._report(self.loop.markers(stamp_to_seconds(msg.header.stamp), len(msg.poses) > 0))
@@ -206,12 +206,15 @@ class SelectorNode(Node):
             except StatusFormatError as exc:
                 self._warn_once('frame', f'/diagnostics {DETECTOR_DIAGNOSTIC} status ignored: {exc}')
                 continue
-            if frame.status is FrameStatus.BAD_INPUT:
-                text = self._throttle(f'bad_input.{frame.kind}', f'frame at {frame.stamp:.3f} s was bad input '
-                                      f'({status.message}); not counted as the hand hidden, waiting for the next')
-                if text is not None:
-                    self.get_logger().warning(text)
-                self.loop.bad_frame(frame.stamp, status.message)
+            if frame.status is FrameStatus.BAD_INPUT and self.loop.bad_frame(frame.stamp, status.message):
+                self._warn(f'bad_input.{frame.kind}', f'the attempt frame at {frame.stamp:.3f} s was bad input '
+                           f'({status.message}); not counted as the hand hidden, waiting for the next')
+
+    def _warn(self, key: str, text: str) -> None:
+        """A warning throttled per kind of problem (``key``), not per call site."""
+        out = self._throttle(key, text)
+        if out is not None:
+            self.get_logger().warning(out)
 
     def on_status(self, msg: DiagnosticStatus) -> None:
         try:

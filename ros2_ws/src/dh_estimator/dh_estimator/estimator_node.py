@@ -65,6 +65,7 @@ from calibration_interfaces.messages import covariance_to_msg, table_to_msg
 from calibration_interfaces.node_util import WarnOnce, declare_settings, qos_profile, spin_node
 from calibration_interfaces.noise import NoiseSettings
 from calibration_interfaces.outcome import Outcome, encode_status
+from calibration_interfaces.throttle import KeyedThrottle
 
 from .estimator import EstimatorSettings, OnlineEstimator
 from .node_settings import EstimatorNodeSettings
@@ -104,6 +105,7 @@ class EstimatorNode(Node):
 
         self.last_update_s = 0.0
         self._warn_once = WarnOnce(self)
+        self._throttle = KeyedThrottle(2.0)
         self.pub_estimate = self.create_publisher(Float64MultiArray, '/body_schema/estimate',
                                                   qos_profile('/body_schema/estimate'))
         self.pub_cov = self.create_publisher(Float64MultiArray, '/body_schema/covariance',
@@ -137,7 +139,14 @@ class EstimatorNode(Node):
             if exc.once:
                 self._warn_once(exc.key, str(exc))
             else:
-                self.get_logger().warning(str(exc))
+                self._warn(exc.key, str(exc))
+
+    def _warn(self, key: str, text: str) -> None:
+        """A warning throttled per kind of problem (``key``): a burst of one kind is not a
+        screenful, and does not hide another kind."""
+        out = self._throttle(key, text)
+        if out is not None:
+            self.get_logger().warning(out)
 
     def on_joint_state(self, msg: JointState) -> None:
         self._feed('/joint_states', msg)
@@ -151,13 +160,13 @@ class EstimatorNode(Node):
     def _handle(self, results: list[ObservationResult]) -> None:
         for a in results:
             if a.outcome is Outcome.DROPPED:
-                self.get_logger().warning(f'hand pose at {a.stamp:.3f} s dropped: {a.message}')
+                self._warn('dropped', f'hand pose at {a.stamp:.3f} s dropped: {a.message}')
                 continue
             if a.outcome is Outcome.DUPLICATE:
                 continue                             # the same static configuration: not new evidence
             self.last_update_s = a.update_seconds
             if a.outcome is Outcome.INVALID:
-                self.get_logger().warning(f'hand pose at {a.stamp:.3f} s rejected as invalid input: {a.message}')
+                self._warn('invalid', f'hand pose at {a.stamp:.3f} s rejected as invalid input: {a.message}')
             elif a.outcome.updated:
                 if a.outcome is not Outcome.ACCEPTED:      # an outlier (MAP) or gated out (EKF)
                     self.get_logger().warning(f'{a.outcome.value} at {a.stamp:.3f} s: {a.message} '

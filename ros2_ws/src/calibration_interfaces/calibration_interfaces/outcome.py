@@ -19,14 +19,17 @@ input it cannot judge) and publishes that verdict per frame on ``/diagnostics``
 from __future__ import annotations
 
 import enum
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 __all__ = ['Outcome', 'StatusKey', 'UpdateStatus', 'encode_status', 'decode_status', 'StatusFormatError',
            'FrameStatus', 'FrameKey', 'FrameReport', 'DETECTOR_DIAGNOSTIC', 'encode_frame', 'decode_frame']
+
+T = TypeVar('T')
 
 
 class Outcome(enum.StrEnum):
@@ -127,18 +130,13 @@ def decode_status(values: Mapping[str, str]) -> UpdateStatus:
     StatusFormatError
         If a key is missing or a value does not parse; the message names it.
     """
-    try:
-        return UpdateStatus(
-            outcome=Outcome(values[StatusKey.OUTCOME]), stamp=float(values[StatusKey.STAMP]),
-            joints=np.array([float(v) for v in values[StatusKey.JOINTS].split()], dtype=float),
-            mahalanobis=float(values[StatusKey.MAHALANOBIS]),
-            update_seconds=float(values[StatusKey.UPDATE_S]),
-            counters={**{k.value: int(values[k]) for k in _COUNTERS},
-                      **{k.value: int(values.get(k, 0)) for k in _NEWER_COUNTERS}})
-    except KeyError as exc:
-        raise StatusFormatError(f'update status lacks key {exc.args[0]!r}; has {sorted(values)}') from None
-    except ValueError as exc:
-        raise StatusFormatError(f'update status {dict(values)!r} does not parse: {exc}') from exc
+    return _parsed('update status', values, lambda: UpdateStatus(
+        outcome=Outcome(values[StatusKey.OUTCOME]), stamp=float(values[StatusKey.STAMP]),
+        joints=np.array([float(v) for v in values[StatusKey.JOINTS].split()], dtype=float),
+        mahalanobis=float(values[StatusKey.MAHALANOBIS]),
+        update_seconds=float(values[StatusKey.UPDATE_S]),
+        counters={**{k.value: int(values[k]) for k in _COUNTERS},
+                  **{k.value: int(values.get(k, 0)) for k in _NEWER_COUNTERS}}))
 
 
 class FrameStatus(enum.StrEnum):
@@ -198,10 +196,15 @@ def decode_frame(values: Mapping[str, str]) -> FrameReport:
     StatusFormatError
         If a key is missing or a value does not parse; the message names it.
     """
+    return _parsed('frame status', values, lambda: FrameReport(
+        FrameStatus(values[FrameKey.STATUS]), float(values[FrameKey.STAMP]), values.get(FrameKey.KIND, '')))
+
+
+def _parsed(what: str, values: Mapping[str, str], build: Callable[[], T]) -> T:
+    """``build()``, with a missing key or a value that does not parse as a StatusFormatError."""
     try:
-        return FrameReport(FrameStatus(values[FrameKey.STATUS]), float(values[FrameKey.STAMP]),
-                           values.get(FrameKey.KIND, ''))
+        return build()
     except KeyError as exc:
-        raise StatusFormatError(f'frame status lacks key {exc.args[0]!r}; has {sorted(values)}') from None
+        raise StatusFormatError(f'{what} lacks key {exc.args[0]!r}; has {sorted(values)}') from None
     except ValueError as exc:
-        raise StatusFormatError(f'frame status {dict(values)!r} does not parse: {exc}') from exc
+        raise StatusFormatError(f'{what} {dict(values)!r} does not parse: {exc}') from exc

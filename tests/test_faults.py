@@ -8,7 +8,8 @@ table from the same rows); here each row is held to what must be true:
 * every node that was not killed survives, and the run finishes, or, where nothing in process
   can notice the death (sim, selector), stops in a named phase (the launcher notices a dead
   process: tests/test_end_to_end.py::test_a_node_that_dies_fails_the_run_with_its_log_tail);
-* after a burst or a clock jump, good data is accepted again.
+* after a burst or a clock jump, good data is accepted again (after the burst: not yet, a
+  strict xfail with what was found).
 
 That a bad frame is no longer a hidden hand is tested node by node
 (marker_detector/test/test_detector_node.py, active_selector/test/test_selector_node.py).
@@ -67,33 +68,19 @@ def test_a_burst_of_bad_messages_on_every_input_topic_is_survived(burst: FaultRo
 
 @pytest.mark.xfail(strict=True, reason='found by this suite, not fixed: after a burst of bad /joint_states from '
                    'a second publisher the estimator stops receiving the simulator\'s joint states a few '
-                   'sim seconds later (its buffer stays at the old newest stamp, hand poses pend, every '
-                   'later attempt ends timeout); and the burst on /body_schema/update_status evicts the '
-                   'genuine verdict from the keep-last queues of the selector and the recorder')
+                   'sim seconds later (its buffer stays at an old stamp, hand poses pend, later attempts '
+                   'end timeout); bad /arm/command stop the arm mid-move (unreachable); a burst on '
+                   '/body_schema/update_status can evict a genuine verdict from the keep-last queues')
 def test_after_a_burst_good_data_is_accepted_again_and_recorded(burst: FaultRow) -> None:
     assert burst.accepted_lost == 0, burst
     assert 'accepted' in burst.outcomes[burst.fault_at:], burst
 
 
-@pytest.fixture(scope='module')
-def clock_back(tmp_path_factory: pytest.TempPathFactory) -> FaultRow:
-    from conftest import RosSession
-
-    session = RosSession()
-    try:
-        return run_clock_back(tmp_path_factory.mktemp('clock'), domain_id=session.domain_id)
-    finally:
-        session.close()
-
-
-def test_the_clock_jumping_back_is_survived(clock_back: FaultRow) -> None:
-    assert clock_back.survived and clock_back.ended, clock_back
-    assert clock_back.accepted_lost == 0 and clock_back.silent_wrong == 0, clock_back
-
-
-@pytest.mark.xfail(strict=True, reason='found by this suite, not fixed: after the simulator clock jumps back '
-                   '6 s every later attempt ends failed (an empty /markers after settling), which also '
-                   'teaches the occlusion model; whether the joint-buffer fix of branch h17a is enough '
-                   'is not known')
-def test_after_the_clock_jumps_back_observations_are_accepted_again(clock_back: FaultRow) -> None:
-    assert 'accepted' in clock_back.outcomes[clock_back.fault_at:], clock_back
+def test_the_clock_jumping_back_is_survived_and_the_run_resumes(ros, tmp_path: Path) -> None:
+    row = run_clock_back(tmp_path, domain_id=ros.domain_id)
+    assert row.survived and row.ended, row
+    assert row.accepted_lost == 0 and row.silent_wrong == 0, row
+    # Seed 1's random targets after the jump are seen, not seen, seen without the fault; with a
+    # 1 s outcome timeout, shorter than the jump, nothing may be lost to the repeated times.
+    after = row.outcomes[row.fault_at:]
+    assert 'accepted' in after and 'timeout' not in after, row

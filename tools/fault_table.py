@@ -199,21 +199,37 @@ def run_kill_recorder_process(workdir: Path, domain_id: int | None = None) -> Fa
                              '--ros-args', '-p', f'output:={bag}', '-p', f'topics:={topics!r}'.replace("'", '"'),
                              '-p', 'use_sim_time:=true'], env=env, stdout=log, stderr=subprocess.STDOUT)
     try:
-        with _session(domain) as (ctx, ex), InProcessGraph(ctx, ex, _params(6)) as g:
-            # The recorder subscribes to every publisher it finds; wait until it has the verdicts.
-            g.spin_until(lambda: g.estimator.pub_status.get_subscription_count() >= 2, DEADLINE, 'the recorder process')
-            g.spin_until(lambda: _accepted_iterations(g.selector) >= 2, DEADLINE, 'two accepted iterations')
-            # Let the recorder take the second verdict (reliable; it is another process).
-            deadline = time.monotonic() + 2.0
-            while time.monotonic() < deadline:
-                g.spin_once()
-            accepted_before = g.estimator.estimator.counters['updates']
-            fault_at = len(g.selector.planner.history)
-            proc.send_signal(signal.SIGKILL)
-            proc.wait(10)
-            g.spin_until(lambda: g.selector.done, DEADLINE, 'the run to finish without its recorder')
-            outcomes = [a.outcome.value for a in g.selector.planner.history]
-            alive = all(n.context.ok() for n in g.nodes.values())
+        with _session(domain) as (ctx, ex):
+            # The recorder process first (it takes seconds to start; the graph would be done).
+            from diagnostic_msgs.msg import DiagnosticStatus
+            from rclpy.node import Node
+
+            from calibration_interfaces.node_util import qos_profile
+
+            probe = Node('fault_recorder_probe', context=ctx)
+            pub = probe.create_publisher(DiagnosticStatus, '/body_schema/update_status',
+                                         qos_profile('/body_schema/update_status'))
+            end = time.monotonic() + DEADLINE
+            while pub.get_subscription_count() < 1 and time.monotonic() < end and proc.poll() is None:
+                time.sleep(0.05)          # nothing to spin: the recorder is another process
+            subscribed = pub.get_subscription_count() >= 1
+            probe.destroy_node()
+            if not subscribed:
+                raise RuntimeError(f'the recorder process did not subscribe within {DEADLINE:.0f} s (exit {proc.poll()})')
+            with InProcessGraph(ctx, ex, _params(10)) as g:
+                g.spin_until(lambda: g.estimator.pub_status.get_subscription_count() >= 2, DEADLINE, 'the recorder process')
+                g.spin_until(lambda: _accepted_iterations(g.selector) >= 2, DEADLINE, 'two accepted iterations')
+                # Let the recorder take the second verdict (reliable; it is another process).
+                deadline = time.monotonic() + 0.5
+                while time.monotonic() < deadline:
+                    g.spin_once()
+                accepted_before = g.estimator.estimator.counters['updates']
+                fault_at = len(g.selector.planner.history)
+                proc.send_signal(signal.SIGKILL)
+                proc.wait(10)
+                g.spin_until(lambda: g.selector.done, DEADLINE, 'the run to finish without its recorder')
+                outcomes = [a.outcome.value for a in g.selector.planner.history]
+                alive = all(n.context.ok() for n in g.nodes.values())
     finally:
         if proc.poll() is None:
             proc.kill()

@@ -189,13 +189,8 @@ def encode_frame(status: FrameStatus | str, stamp: float, kind: str = '') -> dic
 
 
 def decode_frame(values: Mapping[str, str]) -> FrameReport:
-    """Parse the key/value strings written by :func:`encode_frame`.
-
-    Raises
-    ------
-    StatusFormatError
-        If a key is missing or a value does not parse; the message names it.
-    """
+    """The frame verdict :func:`encode_frame` wrote; a :class:`StatusFormatError` names a missing
+    key or a value that does not parse."""
     return _parsed('frame status', values, lambda: FrameReport(
         FrameStatus(values[FrameKey.STATUS]), float(values[FrameKey.STAMP]), values.get(FrameKey.KIND, '')))
 

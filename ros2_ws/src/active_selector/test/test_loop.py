@@ -136,6 +136,8 @@ def test_no_outcome_in_time_is_a_timeout(loop, frame, reason):
     it = loop.tick()
     assert it.attempt.outcome == 'timeout' and reason in it.reason
     assert it.attempt.detected is bool(frame)
+    # Without a judged frame nothing is known about visibility (main taught a failure here).
+    assert loop.planner.occlusion.n_configs == (0 if frame is None else 1)
 
 
 def test_bad_input_frames_decide_nothing_and_teach_the_occlusion_model_nothing(loop):

@@ -117,6 +117,9 @@ CONTRACT: tuple[ContractTopic, ...] = (
     # the selector's per-iteration record (JSON), which the offline evaluation aligns on.
     ContractTopic('/body_schema/update_status', 'diagnostic_msgs/msg/DiagnosticStatus', HISTORY),
     ContractTopic('/calibration/progress', 'std_msgs/msg/String', HISTORY),
+    # The detector's verdict on every frame (calibration_interfaces.outcome.FrameStatus: detected,
+    # no marker, bad input with the reason), so a bad frame is not mistaken for a hidden hand.
+    ContractTopic('/diagnostics', 'diagnostic_msgs/msg/DiagnosticArray'),
 )
 
 BY_NAME: dict[str, ContractTopic] = {t.name: t for t in CONTRACT}

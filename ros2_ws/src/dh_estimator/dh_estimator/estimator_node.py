@@ -48,7 +48,6 @@ README's table lists them with defaults and ranges. ``config/estimator.yaml`` se
 from __future__ import annotations
 
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
@@ -69,6 +68,7 @@ from calibration_interfaces.messages import covariance_to_msg, table_to_msg
 from calibration_interfaces.node_util import WarnOnce, declare_settings, qos_profile, spin_node
 from calibration_interfaces.noise import NoiseSettings
 from calibration_interfaces.outcome import Outcome, encode_status
+from calibration_interfaces.throttle import KeyedThrottle
 
 from .estimator import EstimatorSettings, OnlineEstimator
 from .node_settings import EstimatorNodeSettings
@@ -111,7 +111,7 @@ class EstimatorNode(Node):
 
         self.last_update_s = 0.0
         self._warn_once = WarnOnce(self)
-        self._warned_at: dict[str, float] = {}      # throttled warnings: last time per key (monotonic)
+        self._throttle = KeyedThrottle(THROTTLE_S)
         self.pub_estimate = self.create_publisher(Float64MultiArray, '/body_schema/estimate',
                                                   qos_profile('/body_schema/estimate'))
         self.pub_cov = self.create_publisher(Float64MultiArray, '/body_schema/covariance',
@@ -148,21 +148,22 @@ class EstimatorNode(Node):
         try:
             results = self.feeder.feed(topic, msg, self._now())
         except MessageError as exc:
-            if exc.throttled:
-                # Per key, so that one fault repeating does not hide another.
-                now = time.monotonic()
-                if now - self._warned_at.get(exc.key, -THROTTLE_S) >= THROTTLE_S:
-                    self._warned_at[exc.key] = now
-                    self.get_logger().warning(str(exc))
-            elif exc.once:
+            if exc.once:
                 self._warn_once(exc.key, str(exc))
             else:
-                self.get_logger().warning(str(exc))
+                self._warn(exc.key, str(exc))
             return
         if self.pairer.counters['clock_resets'] != resets:
             self.get_logger().warning(f'the clock stepped back (now {self._now():.3f} s): joint states of the '
                                       f'old timeline forgotten ({self.pairer.counters["clock_resets"]} restarts)')
         self._handle(results)
+
+    def _warn(self, key: str, text: str) -> None:
+        """A warning throttled per kind of problem (``key``): a burst of one kind is not a
+        screenful, and does not hide another kind."""
+        out = self._throttle(key, text)
+        if out is not None:
+            self.get_logger().warning(out)
 
     def on_joint_state(self, msg: JointState) -> None:
         self._feed('/joint_states', msg)
@@ -176,13 +177,13 @@ class EstimatorNode(Node):
     def _handle(self, results: list[ObservationResult]) -> None:
         for a in results:
             if a.outcome is Outcome.DROPPED:
-                self.get_logger().warning(f'hand pose at {a.stamp:.3f} s dropped: {a.message}')
+                self._warn('dropped', f'hand pose at {a.stamp:.3f} s dropped: {a.message}')
                 continue
             if a.outcome is Outcome.DUPLICATE:
                 continue                             # the same static configuration: not new evidence
             self.last_update_s = a.update_seconds
             if a.outcome is Outcome.INVALID:
-                self.get_logger().warning(f'hand pose at {a.stamp:.3f} s rejected as invalid input: {a.message}')
+                self._warn('invalid', f'hand pose at {a.stamp:.3f} s rejected as invalid input: {a.message}')
             elif a.outcome.updated:
                 if a.outcome is not Outcome.ACCEPTED:      # an outlier (MAP) or gated out (EKF)
                     self.get_logger().warning(f'{a.outcome.value} at {a.stamp:.3f} s: {a.message} '

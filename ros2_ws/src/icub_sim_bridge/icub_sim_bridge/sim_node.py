@@ -47,6 +47,7 @@ run's values.
 """
 from __future__ import annotations
 
+import re
 import time
 from typing import Any
 
@@ -69,6 +70,7 @@ from calibration_interfaces.contract import RELIABLE, optical_frame
 from calibration_interfaces.dh_file import read_dh_file
 from calibration_interfaces.messages import matrix_to_pose_msg, table_to_msg
 from calibration_interfaces.node_util import declare_settings, qos_profile, spin_node
+from calibration_interfaces.throttle import KeyedThrottle
 
 from .body_change import parse_body_change
 from .camera import degrade
@@ -91,6 +93,7 @@ class SimNode(Node):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('icub_sim', **kwargs)
+        self._throttle = KeyedThrottle(2.0)
         self.set_parameters([Parameter('use_sim_time', Parameter.Type.BOOL, True)])
         s = self.settings = declare_settings(self, SimSettings, read_only=True)
         self.robot = r = load_robot(s.robot)
@@ -292,7 +295,11 @@ class SimNode(Node):
                                   self.robot.joint_names, self.robot.limits, self.follower.q)
         except CommandError as exc:
             self.follower.stop()
-            self.get_logger().warning(f'rejected /arm/command: {exc}; the arm holds at its present position')
+            # Throttled per reason (numbers aside): a burst of bad commands is not a screenful.
+            text = self._throttle(re.sub(r'[-+.\d]+', '#', str(exc)),
+                                  f'rejected /arm/command: {exc}; the arm holds at its present position')
+            if text is not None:
+                self.get_logger().warning(text)
             return
         duration = self.follower.start(wp)
         self.get_logger().info(f'moving to {np.round(np.degrees(wp.targets[-1]), 1).tolist()} deg '

@@ -24,6 +24,9 @@ from __future__ import annotations
 
 import argparse
 import csv
+import os
+import signal
+import socket
 import sys
 import time
 from pathlib import Path
@@ -174,7 +177,6 @@ def _screenshot(url: str, out: Path, wait_s: float, size: tuple[int, int]) -> No
     import base64
     import json
     import shutil
-    import socket
     import subprocess
     import tempfile
     import urllib.request
@@ -206,7 +208,8 @@ def _screenshot(url: str, out: Path, wait_s: float, size: tuple[int, int]) -> No
                             raise TimeoutError(f'chromium did not open its DevTools port {port} in 30 s')
                         await asyncio.sleep(0.2)
                 target = next(t['webSocketDebuggerUrl'] for t in tabs if t['type'] == 'page')
-                async with websockets.connect(target, max_size=2 ** 28) as ws:
+                # No keepalive pings: a browser busy rendering in software answers them late.
+                async with websockets.connect(target, max_size=2 ** 28, ping_interval=None) as ws:
                     ids = iter(range(1, 1 << 30))
 
                     async def call(method: str, **params: object) -> dict:
@@ -217,6 +220,7 @@ def _screenshot(url: str, out: Path, wait_s: float, size: tuple[int, int]) -> No
                             if reply.get('id') == i:
                                 return reply
 
+                    await call('Page.enable')
                     await call('Page.navigate', url=url)
                     await asyncio.sleep(wait_s)
                     reply = await call('Page.captureScreenshot', format='png')
@@ -228,6 +232,14 @@ def _screenshot(url: str, out: Path, wait_s: float, size: tuple[int, int]) -> No
     out.write_bytes(asyncio.run(shoot()))
 
 
+def _check_free(*ports: int) -> None:
+    """Raise OSError naming the first of ``ports`` another process listens on (127.0.0.1)."""
+    for port in ports:
+        with socket.socket() as s:
+            if s.connect_ex(('127.0.0.1', port)) == 0:
+                raise OSError(f'port {port} is in use (another viewer?); choose others with --port')
+
+
 def main(argv: list[str] | None = None) -> int:
     """Command line: serve the bag to a browser, save it as .rrd, or screenshot the view."""
     ap = argparse.ArgumentParser(prog='bag_view', description=__doc__.split('\n\n')[0])
@@ -235,7 +247,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--metrics', type=Path, help="evaluate's metrics.csv (default: beside the bag, if there)")
     ap.add_argument('--save', type=Path, help='write a Rerun recording (.rrd) instead of serving')
     ap.add_argument('--screenshot', type=Path, help='serve, screenshot in headless Chromium, exit')
-    ap.add_argument('--wait', type=float, default=60.0, help='screenshot: seconds to let the viewer load [s]')
+    ap.add_argument('--wait', type=float, default=150.0, help='screenshot: seconds to let the viewer load [s]')
     ap.add_argument('--port', type=int, default=9090, help='web viewer port (gRPC: port + 1)')
     args = ap.parse_args(argv)
     try:
@@ -255,14 +267,34 @@ def main(argv: list[str] | None = None) -> int:
         rr.disconnect()
         print(f'wrote {args.save}: open it with `rerun {args.save}`')
         return 0
-    grpc = rr.serve_grpc(grpc_port=args.port + 1)
-    log_bag(args.bag, metrics)
-    url = f'http://127.0.0.1:{args.port}/?url={grpc.replace("+", "%2B")}'
-    rr.serve_web_viewer(web_port=args.port, open_browser=False, connect_to=grpc)
+    url = f'http://127.0.0.1:{args.port}/?url=rerun%2Bhttp://127.0.0.1:{args.port + 1}/proxy'
     if args.screenshot is not None:
-        _screenshot(url, args.screenshot, args.wait, (1400, 900))
+        _check_free(args.port, args.port + 1)
+        # Served from a saved recording by Rerun's own server (a second process): the viewer then
+        # loads it at its own pace while this process only drives the browser.
+        import subprocess
+        import tempfile
+
+        with tempfile.TemporaryDirectory() as tmp:
+            rrd = Path(tmp) / 'view.rrd'
+            rr.save(rrd)
+            log_bag(args.bag, metrics)
+            rr.disconnect()
+            # Its own session: `python -m rerun` runs the viewer binary as a child, which must
+            # go with it (a left-over server would keep the ports and serve the next screenshot).
+            server = subprocess.Popen([sys.executable, '-m', 'rerun', '--serve-web', '--web-viewer-port',
+                                       str(args.port), '--port', str(args.port + 1), str(rrd)],
+                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+            try:
+                _screenshot(url, args.screenshot, args.wait, (1400, 900))
+            finally:
+                os.killpg(server.pid, signal.SIGTERM)
+                server.wait(timeout=30)
         print(f'wrote {args.screenshot}')
         return 0
+    grpc = rr.serve_grpc(grpc_port=args.port + 1)
+    log_bag(args.bag, metrics)
+    rr.serve_web_viewer(web_port=args.port, open_browser=False, connect_to=grpc)
     print(f'the calibration in the Rerun viewer: {url}  (Ctrl-C to stop)', flush=True)
     try:
         while True:

@@ -200,7 +200,7 @@ class Extrinsics:
         skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -arm[:, 2], arm[:, 1], -arm[:, 0]
         skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = arm[:, 2], -arm[:, 1], arm[:, 0]
         r_e = big_e[:3, :3]
-        jp = r_e @ (j_dh[:, :3] + np.einsum('nij,njk->nik', skew, j_dh[:, 3:]))
+        jp = r_e @ (j_dh[:, :3] - np.einsum('nij,njk->nik', skew, j_dh[:, 3:]))
         jw = r_e @ j_dh[:, 3:]
         cols = [np.concatenate([jp, jw], axis=1)]
         if self.n:

@@ -222,6 +222,12 @@ class OnlineEstimator:
         return self.map.P if self.map is not None else self.ekf.P
 
     @property
+    def P_dh(self) -> NDArray[np.float64]:  # noqa: N802
+        """The table's block of the covariance, shape (4 L, 4 L) (marginal over any extrinsics)."""
+        n = self.model.n_params
+        return self.P[:n, :n]
+
+    @property
     def mahalanobis(self) -> float:
         """Mahalanobis distance of the last offered observation's innovation (before its update)."""
         if self.map is not None:

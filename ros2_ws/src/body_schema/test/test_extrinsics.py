@@ -5,9 +5,11 @@ import re
 
 import numpy as np
 import pytest
+import scipy.linalg
 from scipy.spatial.transform import Rotation
 
 from body_schema import kinematics, sampling
+from body_schema.acquisition import AcquisitionCost
 from body_schema.extrinsics import (Extrinsics, absorbed_parameters, align_truth, corrections, parse_std,
                                     perturb_pose, pose_delta, random_delta, static_transform)
 from body_schema.identifiability import analyse, parameter_names, subspace_nees
@@ -189,7 +191,8 @@ def test_map_without_extrinsics_is_the_same_estimator():
 
 
 @pytest.mark.parametrize('text, expected', [('', None), ('0', None), ('0 0', None),
-                                            ('0.02 2', (0.02, np.radians(2.0))), ('0.005, 5', (0.005, np.radians(5.0)))])
+                                            ('0.02 2', (0.02, np.radians(2.0))),
+                                            ('0.005, 5', (0.005, np.radians(5.0)))])
 def test_parse_std(text, expected):
     assert parse_std(text, 'camera_prior') == (pytest.approx(expected) if expected else None)
 
@@ -212,3 +215,26 @@ def test_corrections_are_identity_at_zero():
     e, f = corrections(CAM, MARKER, np.zeros(6), np.zeros(6))
     np.testing.assert_allclose(e, np.eye(4), atol=1e-12)
     np.testing.assert_allclose(f, np.eye(4), atol=1e-12)
+
+
+def _cost(P, extrinsics=None, criterion='a_optimal'):  # noqa: N803
+    box = uniform_configs(UR5E.calibration_box, 64, 0)
+    return AcquisitionCost(UR5E.base, UR5E.dh, P, PoseDependentNoise(), CAM, UR5E.markers, criterion=criterion,
+                           box_configs=box, extrinsics=extrinsics)
+
+
+@pytest.mark.parametrize('criterion', ['a_optimal', 'v_optimal'])
+def test_acquisition_with_a_known_camera_is_the_table_alone_and_a_free_one_gains_less(criterion):
+    """The selector scores only the table: a camera whose pose is known (tiny prior) leaves the
+    gain as without extrinsics; a free camera takes part of each observation's information."""
+    P_dh = sampling.initial_covariance(6, 0.004, np.radians(2.0))  # noqa: N806
+    qs = uniform_configs(UR5E.calibration_box, 20, 1)
+    plain = _cost(P_dh, criterion=criterion).terms_batch(qs)[0]
+    camera_only = Extrinsics(CAM, MARKER, camera_std=(0.02, np.radians(2.0)))
+    known = _cost(scipy.linalg.block_diag(P_dh, 1e-14 * np.eye(6)), camera_only, criterion).terms_batch(qs)[0]
+    np.testing.assert_allclose(known, plain, rtol=1e-6)
+    free_p = scipy.linalg.block_diag(P_dh, np.diag(camera_only.prior_std() ** 2))
+    free = _cost(free_p, camera_only, criterion).terms_batch(qs)[0]
+    assert np.all(free < plain) and np.median(free / plain) < 0.9
+    with pytest.raises(ValueError, match=r'\(30, 30\).*6 extrinsic corrections'):
+        _cost(P_dh, camera_only, criterion)

@@ -22,6 +22,9 @@ Topics published
 /body_schema/true : std_msgs/Float64MultiArray
     The simulated robot's real DH table, L x 4 (a, d, alpha, offset); transient local;
     published again when the body changes.
+/body_schema/true_extrinsics : std_msgs/Float64MultiArray
+    2 x 6: the real camera's and marker board's offsets from the description's poses (position
+    [m], rotation vector [rad], :func:`body_schema.extrinsics.perturb_pose`); transient local.
 /robot_description : std_msgs/String
     URDF of the real arm (links as :func:`body_schema.urdf.chain_transforms` names the TF
     frames, the simulator's geometry); transient local; published again when the body changes.
@@ -71,7 +74,7 @@ from body_schema.robot import load_robot
 from body_schema.sampling import perturb_dh
 from calibration_interfaces.contract import RELIABLE, optical_frame
 from calibration_interfaces.dh_file import read_dh_file
-from calibration_interfaces.messages import matrix_to_pose_msg, table_to_msg
+from calibration_interfaces.messages import extrinsics_to_msg, matrix_to_pose_msg, table_to_msg
 from calibration_interfaces.node_util import declare_settings, qos_profile, spin_node
 
 from .body_change import parse_body_change
@@ -169,6 +172,8 @@ class SimNode(Node):
         self.pub_clock = self.create_publisher(ClockMsg, '/clock', qos_profile('/clock'))
         self.pub_js = self.create_publisher(JointState, '/joint_states', qos_profile('/joint_states'))
         self.pub_true = self.create_publisher(Float64MultiArray, '/body_schema/true', qos_profile('/body_schema/true'))
+        self.pub_true_extrinsics = self.create_publisher(Float64MultiArray, '/body_schema/true_extrinsics',
+                                                         qos_profile('/body_schema/true_extrinsics'))
         self.pub_description = self.create_publisher(String, '/robot_description', qos_profile('/robot_description'))
         self.pub_img, self.pub_info, self.pub_pose = {}, {}, {}
         for eye in self.cameras:
@@ -204,6 +209,7 @@ class SimNode(Node):
 
     def _publish_latched(self) -> None:
         self._publish_real_arm()
+        self.pub_true_extrinsics.publish(extrinsics_to_msg(*self.true_extrinsics))
         for eye, pose in self.cameras.items():
             ps = PoseStamped(pose=matrix_to_pose_msg(pose))
             ps.header.frame_id = self.robot.root_frame

@@ -23,6 +23,9 @@ Runs one online calibration of a simulated arm (the iCub right arm by default) a
   --body-change SPEC  change the real robot mid-run, e.g. 'r_wrist_prosup.d+0.010 r_shoulder_yaw.offset+3'
                     (joint.a|d [m] or joint.alpha|offset [deg], signed increments)
   --body-change-at N  the iteration at whose command the body changes (default: half the iterations)
+  --camera-error 'M DEG'  the real camera is M metres and DEG degrees off its description's pose (seeded),
+                    and the estimator estimates its pose with that prior one-sigma (default: known)
+  --marker-error 'M DEG'  the same for the marker's offset on the flange (default: known)
   --rtf F           simulated seconds per wall second; 0 = as fast as possible (default: 1.0)
   --image-size WxH  camera resolution, intrinsics scale with it         (default: the description's camera)
   --no-images       do not record the camera images (smaller bag)
@@ -39,7 +42,7 @@ EOF
 }
 
 robot=icub_right_arm; strategy=al; iterations=50; seed=1; output=results/run; noise=pose_dependent; rtf=1.0; estimator=map
-body_change=""; body_change_at=""
+body_change=""; body_change_at=""; camera_error=""; marker_error=""
 image_size=""; record_images=1; domain_id=""; timeout=""; viz=0; viz_port=8080
 while [ $# -gt 0 ]; do
   case "$1" in
@@ -53,6 +56,8 @@ while [ $# -gt 0 ]; do
     --body-change) body_change=$2; shift 2 ;;
     --body-change-at) body_change_at=$2; shift 2 ;;
     --rtf) rtf=$2; shift 2 ;;
+    --camera-error) camera_error=$2; shift 2 ;;
+    --marker-error) marker_error=$2; shift 2 ;;
     --image-size) image_size=$2; shift 2 ;;
     --no-images) record_images=0; shift ;;
     --domain-id) domain_id=$2; shift 2 ;;
@@ -180,6 +185,12 @@ recorder_args=(-p "output:=$bag" -p "robot:=$robot")
 sim_args=()       # rcl refuses an empty value (-p body_change:=), so the change is passed only when asked for
 [ -z "$body_change" ] || sim_args=(-p "body_change:=$body_change" -p "body_change_at_command:=$body_change_at")
 [ "$record_images" = 1 ] || recorder_args+=(-p "exclude_images:=true")
+extrinsics_args=()   # the real camera / marker off the description's, estimated with the arm
+[ -z "$camera_error" ] || { sim_args+=(-p "camera_perturbation:=$camera_error"); extrinsics_args+=(-p "camera_prior:=$camera_error"); }
+[ -z "$marker_error" ] || { sim_args+=(-p "marker_perturbation:=$marker_error"); extrinsics_args+=(-p "marker_prior:=$marker_error"); }
+report_args=()       # the report's re-run estimates them too
+[ -z "$camera_error" ] || report_args+=(--camera-prior "$camera_error")
+[ -z "$marker_error" ] || report_args+=(--marker-prior "$marker_error")
 
 echo "run_calibration: $robot, $strategy, $iterations iterations, seed $seed, noise $noise, estimator $estimator," \
      "$size_text, rtf $rtf, ROS_DOMAIN_ID $ROS_DOMAIN_ID -> $output"
@@ -201,7 +212,7 @@ fi
 start detector marker_detector detector_node --ros-args --params-file "$config/detector.yaml" -p "robot:=$robot"
 start estimator dh_estimator estimator_node --ros-args --params-file "$config/estimator.yaml" \
   -p "robot:=$robot" -p "initial_seed:=$seed" -p "noise_model:=$noise" -p "estimator:=$estimator" \
-  -p "export_dir:=$output/model"
+  -p "export_dir:=$output/model" "${extrinsics_args[@]}"
 # The selector last, once the recorder records every topic but the selector's own two (/arm/command,
 # /calibration/progress): nothing moves and the estimator does not update before the first command,
 # so the bag then holds the initial estimate and every observation. (The recorder finds publishers
@@ -222,7 +233,7 @@ done
 recording_all || fail recorder "did not subscribe to the other nodes' topics within 20 s"
 start selector active_selector selector_node --ros-args --params-file "$config/selector.yaml" \
   -p "robot:=$robot" -p "strategy:=$strategy" -p "iterations:=$iterations" -p "seed:=$seed" -p "noise_model:=$noise" \
-  -p "progress_file:=$output/progress.jsonl"
+  -p "progress_file:=$output/progress.jsonl" "${extrinsics_args[@]}"
 
 # --- Wait for the selector; a node that dies fails the run ----------------------------------
 shown=0
@@ -252,7 +263,7 @@ calibration_cmd=$(command_of calibration_bringup calibration_report)
 # shellcheck disable=SC2086  # the command line is words on purpose (ros2 run pkg exe)
 $calibration_cmd --bag "$bag" --output "$output" --wall-seconds "$wall" \
   --title "$robot, $strategy, $iterations iterations, seed $seed, noise $noise, estimator $estimator, $size_text" \
-  --params-file "$config/estimator.yaml" --noise-model "$noise" --estimator "$estimator" --robot "$robot"
+  --params-file "$config/estimator.yaml" --noise-model "$noise" --estimator "$estimator" --robot "$robot" "${report_args[@]}"
 # A node killed at the end may have lost its export (estimator) or the end of the bag (recorder):
 # the report above says what the bag holds, but the run is not a clean one.
 if [ "${#killed[@]}" -gt 0 ]; then

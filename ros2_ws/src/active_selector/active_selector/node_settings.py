@@ -31,6 +31,10 @@ class SelectorNodeSettings:
                        choices=('left', 'right'))
     progress_file: str = setting('', 'JSON-lines file, one object per iteration')
     wait_report_period: float = setting(2.0, 'Wall seconds between "waiting for" reports', (0.1, 3600.0))
+    camera_prior: str = setting('', "The estimator's camera_prior: non-empty (not 0) when it estimates the "
+                                'camera pose, whose covariance then comes with the estimate')
+    marker_prior: str = setting('', "The estimator's marker_prior: non-empty (not 0) when it estimates the "
+                                'marker offset')
 
 
 @dataclass(frozen=True)

@@ -16,6 +16,7 @@ from scipy.stats import qmc
 from body_schema import ArmModel
 from body_schema.acquisition import (CRITERIA, OCCLUSION_MODES, AcquisitionCost, JointSelector, Selection,
                                      SelectorConfig, Strategy)
+from body_schema.extrinsics import Extrinsics
 from body_schema.noise import NoiseModel
 from body_schema.occlusion import OcclusionModel, VisibilityPrior
 from calibration_interfaces.outcome import Outcome
@@ -89,12 +90,16 @@ class Planner:
     noise : NoiseModel
         Predicts ``R(theta)`` inside the A-optimality cost.
     settings : PlannerSettings
+    extrinsics : Extrinsics, optional
+        Camera / marker corrections the estimator estimates with the table (the covariance passed
+        to :meth:`select` then includes them; see :class:`body_schema.acquisition.AcquisitionCost`).
     """
 
     model: ArmModel
     noise: NoiseModel
     settings: PlannerSettings = PlannerSettings()
     history: list[Attempt] = field(default_factory=list)
+    extrinsics: Extrinsics | None = None
 
     def __post_init__(self) -> None:
         box = self.model.calibration_box
@@ -143,7 +148,7 @@ class Planner:
                                np.asarray(P, dtype=float), self.noise, np.asarray(camera_pose, dtype=float),
                                self.model.markers, occlusion=self.occlusion, visibility=self.visibility,
                                penalty_a=s.penalty_a, penalty_b=s.penalty_b, occlusion_mode=s.occlusion_mode,
-                               criterion=s.criterion, box_configs=self.box_configs)
+                               criterion=s.criterion, box_configs=self.box_configs, extrinsics=self.extrinsics)
         if self.visibility is not None:
             tried, _ = self.occlusion.attempts
             cost.visibility_weight = (self.occlusion.geometric_evidence(cost.visibility_probability(tried))

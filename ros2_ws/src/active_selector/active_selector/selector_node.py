@@ -63,6 +63,7 @@ from std_msgs.msg import Float64MultiArray, String
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from body_schema import load_robot
+from body_schema.extrinsics import Extrinsics, parse_std
 from calibration_interfaces.contract import SENSOR
 from calibration_interfaces.messages import (MessageFormatError, joints_in_order, msg_to_covariance, msg_to_table,
                                              pose_msg_to_matrix, stamp_to_seconds)
@@ -92,7 +93,13 @@ class SelectorNode(Node):
         noise = declare_settings(self, NoiseSettings).build(declare_settings(self, PoseDependentSettings))
 
         self.model = load_robot(self.settings.robot)
-        self.planner = Planner(self.model, noise, planner_settings)
+        # Extrinsics the estimator estimates with the table: their columns enter the cost.
+        priors = [parse_std(v, k) for k, v in (('camera_prior', self.settings.camera_prior),
+                                                ('marker_prior', self.settings.marker_prior))]
+        extrinsics = (Extrinsics(self.model.camera_pose(self.settings.eye), self.model.markers[0].hand_T_marker,
+                                 *priors) if any(p is not None for p in priors) else None)
+        self.planner = Planner(self.model, noise, planner_settings, extrinsics=extrinsics)
+        self.n_covariance = self.model.n_params + (0 if extrinsics is None else extrinsics.n)
         self.iterations = loop_settings.iterations
         self.loop = CalibrationLoop(self.planner, loop_settings, self.now)
         self.progress_file = Path(self.settings.progress_file) if self.settings.progress_file else None
@@ -184,7 +191,7 @@ class SelectorNode(Node):
 
     def on_covariance(self, msg: Float64MultiArray) -> None:
         try:
-            self.P = msg_to_covariance(msg, self.model.n_params)
+            self.P = msg_to_covariance(msg, self.n_covariance)
         except MessageFormatError as exc:
             self._warn('covariance', f'/body_schema/covariance ignored: {exc}')
 

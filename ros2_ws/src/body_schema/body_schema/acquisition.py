@@ -69,10 +69,12 @@ from typing import Callable, Sequence
 import nlopt
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+import scipy.linalg
 from scipy.spatial import cKDTree
 from scipy.stats import qmc
 
 from . import kinematics
+from .extrinsics import Extrinsics
 from .noise import ConstantNoise, NoiseModel
 from .occlusion import OcclusionModel, VisibilityPrior
 from .robot import MarkerPlacement
@@ -237,6 +239,11 @@ class AcquisitionCost:
         Configurations the v-optimal criterion averages over (required for it).
     noise_scales : (float, float)
         Detector noise scales ``(s_pos [m], s_rot [rad])`` weighting v-optimality.
+    extrinsics : Extrinsics, optional
+        Camera / marker corrections the estimator estimates with the table: ``P`` is then
+        ``(4 L + e)`` square (table first), the observation Jacobian includes their columns (at zero
+        correction) and only the table's uncertainty is scored, so a configuration whose
+        information would go to the camera pose is not mistaken for one that calibrates the arm.
     """
 
     base: NDArray[np.float64]
@@ -254,6 +261,7 @@ class AcquisitionCost:
     criterion: str = 'a_optimal'
     box_configs: NDArray[np.float64] | None = None
     noise_scales: tuple[float, float] = DETECTOR_NOISE_SCALES
+    extrinsics: Extrinsics | None = None
     weight: NDArray[np.float64] | None = field(init=False, repr=False)
     uncertainty: float = field(init=False, repr=False)
     _marker_frames: NDArray[np.float64] = field(init=False, repr=False)
@@ -261,10 +269,11 @@ class AcquisitionCost:
     def __post_init__(self) -> None:
         self.dh = np.asarray(self.dh, dtype=float)
         self.P = np.asarray(self.P, dtype=float)
-        n = self.dh.size
+        n_extra = 0 if self.extrinsics is None else self.extrinsics.n
+        n = self.dh.size + n_extra
         if self.P.shape != (n, n):
-            raise ValueError(f'P must have shape ({n}, {n}) for a {self.dh.shape} DH table, '
-                             f'got {self.P.shape}')
+            raise ValueError(f'P must have shape ({n}, {n}) for a {self.dh.shape} DH table'
+                             + (f' and {n_extra} extrinsic corrections' if n_extra else '') + f', got {self.P.shape}')
         if not (np.all(np.isfinite(self.dh)) and np.all(np.isfinite(self.P))):
             raise ValueError('estimate or covariance contains NaN or inf')
         self._marker_frames = (np.stack([m.hand_T_marker for m in self.markers]) if self.markers
@@ -282,7 +291,12 @@ class AcquisitionCost:
                 raise ValueError("criterion 'v_optimal' needs box_configs, the (M, L) configurations "
                                  'it averages the hand-pose variance over')
             self.weight = box_pose_weight(self.base, self.dh, self.box_configs, self.noise_scales)
+            if n_extra:
+                self.weight = scipy.linalg.block_diag(self.weight, np.zeros((n_extra, n_extra)))
             self.uncertainty = float(np.sum(self.weight * self.P))      # tr(A P), both symmetric
+        elif n_extra:
+            self.weight = np.diag(np.concatenate([np.ones(self.dh.size), np.zeros(n_extra)]))
+            self.uncertainty = float(np.sum(self.weight * self.P))
         else:
             self.weight = None
             self.uncertainty = float(np.trace(self.P))
@@ -303,7 +317,7 @@ class AcquisitionCost:
         """
         frames = kinematics.chain_frames(self.base, self.dh, np.atleast_2d(thetas))   # (N, L+1, 4, 4)
         hand = frames[:, -1]
-        H = kinematics.pose_jacobian_from_frames(frames)                         # (N, 6, n)  # noqa: N806
+        H = self._jacobian(frames)                                               # (N, 6, n)  # noqa: N806
         # One pose goes through the noise model's single-pose path (3x cheaper; the local search).
         R = self.noise.hand_covariance(self.camera_pose, hand[0] if len(hand) == 1 else hand,  # noqa: N806
                                        self.markers).reshape(-1, 6, 6)
@@ -319,6 +333,12 @@ class AcquisitionCost:
         else:
             eta = np.ones(hand.shape[0]) if prior is None else prior
         return gain, eta, hand[:, 0, 3]
+
+    def _jacobian(self, frames: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Observation Jacobian (N, 6, n) at the chain ``frames`` (N, L + 1, 4, 4)."""
+        if self.extrinsics is None:
+            return kinematics.pose_jacobian_from_frames(frames)
+        return self.extrinsics.predict(frames, np.zeros(self.extrinsics.n))[1]
 
     def _visibility(self, hand: NDArray[np.float64], hph: NDArray[np.float64]) -> NDArray[np.float64]:
         """Geometric detection probability (N,) of hands (N, 4, 4) with predicted pose covariances (N, 6, 6)."""
@@ -338,7 +358,7 @@ class AcquisitionCost:
         if self.visibility is None:
             raise ValueError('this AcquisitionCost has no visibility prior')
         frames = kinematics.chain_frames(self.base, self.dh, np.atleast_2d(thetas))
-        H = kinematics.pose_jacobian_from_frames(frames)                         # noqa: N806
+        H = self._jacobian(frames)                                               # noqa: N806
         return self._visibility(frames[:, -1], H @ self.P @ np.swapaxes(H, -1, -2))
 
     def terms(self, theta: ArrayLike) -> tuple[float, float, float]:

@@ -13,6 +13,13 @@ dependency is one unidentifiable direction, named by its parameters.
 goes to :class:`body_schema.map_estimator.MapEstimator` (``fixed_directions``), which keeps the
 estimate at its prior along it, and :func:`subspace_nees` scores an estimate's consistency on the
 identifiable rest.
+
+With a camera pose and a marker offset estimated too (:class:`body_schema.extrinsics.Extrinsics`),
+the Jacobian gains their columns; those are taken as base columns first (the pivoted QR then runs
+on the DH columns with the corrections' span projected out), so every dependency names a DH
+parameter the corrections absorb (the first link's ``d`` and ``offset``, the last link's row) and
+:attr:`Identifiability.held_directions` holds those DH parameters themselves, leaving the
+camera and the marker free: the base frame and the flange frame stay the table's.
 """
 from __future__ import annotations
 
@@ -22,6 +29,8 @@ import numpy as np
 import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
 
+from . import kinematics
+from .extrinsics import Extrinsics
 from .kinematics import PARAMS_PER_LINK
 from .robot import ArmModel
 from .sampling import uniform_configs
@@ -67,6 +76,8 @@ class Identifiability:
         direction along which the hand does not move.
     reasons : tuple of str
         Why, one per dependency, where the geometry explains it (parallel consecutive axes).
+    n_dh : int
+        How many of the parameters are the DH table's (the rest are extrinsic corrections).
     """
 
     names: tuple[str, ...]
@@ -76,10 +87,21 @@ class Identifiability:
     null_space: NDArray[np.float64]
     dependencies: tuple[NDArray[np.float64], ...]
     reasons: tuple[str, ...]
+    n_dh: int = -1
 
     @property
     def n_unidentifiable(self) -> int:
         return self.null_space.shape[1]
+
+    @property
+    def held_directions(self) -> NDArray[np.float64]:
+        """Orthonormal directions an estimator holds, shape (n, n - rank): the dependencies with
+        their extrinsic components dropped (equal to :attr:`null_space` without extrinsics)."""
+        if self.n_dh < 0 or self.n_dh == len(self.names) or not self.dependencies:
+            return self.null_space
+        deps = np.array(self.dependencies).T.copy()
+        deps[self.n_dh:] = 0.0
+        return scipy.linalg.orth(deps)
 
     @property
     def identifiable_basis(self) -> NDArray[np.float64]:
@@ -151,11 +173,21 @@ def _reason(v: NDArray[np.float64], dh: NDArray[np.float64], joint_names: tuple[
             joints = ', '.join(joint_names[k] for k in group)
             return (f'the axes of joints {joints} are parallel (alpha = 0 or 180 deg between them): '
                     f'their d all translate along that common axis, so only their sum is observed')
+    n_dh = dh.size
+    dh_idx = {i for i in idx if i < n_dh}
+    if idx - dh_idx and dh_idx <= {1, 3}:
+        return (f'a turn about and a shift along the first joint axis ({joint_names[0]}) commute with the '
+                f'joint: the camera pose absorbs them, held in the table')
+    last = set(range(n_dh - PARAMS_PER_LINK, n_dh))
+    if idx - dh_idx and dh_idx <= last:
+        return (f'everything of the last link after its joint ({joint_names[-1]}) is one fixed transform: '
+                f'the marker offset absorbs it, held in the table')
     return 'the pose Jacobian columns are linearly dependent over the box (no geometric rule matched)'
 
 
 def analyse_jacobian(J: ArrayLike, names: tuple[str, ...], dh: ArrayLike | None = None,  # noqa: N803
-                     joint_names: tuple[str, ...] = (), rank_tol: float = RANK_TOL) -> Identifiability:
+                     joint_names: tuple[str, ...] = (), rank_tol: float = RANK_TOL,
+                     n_extra: int = 0) -> Identifiability:
     """Identifiability from a stacked Jacobian.
 
     Parameters
@@ -169,6 +201,9 @@ def analyse_jacobian(J: ArrayLike, names: tuple[str, ...], dh: ArrayLike | None 
         For the explanations.
     rank_tol : float
         Relative tolerance of the rank decision on the pivoted QR's diagonal.
+    n_extra : int
+        The last ``n_extra`` columns are extrinsic corrections, taken as base columns first
+        (needs ``dh``).
     """
     J = np.asarray(J, dtype=float)  # noqa: N806
     if J.ndim != 2 or J.shape[1] != len(names) or not np.all(np.isfinite(J)):
@@ -176,10 +211,23 @@ def analyse_jacobian(J: ArrayLike, names: tuple[str, ...], dh: ArrayLike | None 
     if J.shape[0] < J.shape[1]:
         raise ValueError(f'J has {J.shape[0]} rows for {J.shape[1]} parameters: use more configurations')
     n = J.shape[1]
-    _q, r, piv = scipy.linalg.qr(J, mode='economic', pivoting=True)
-    diag = np.abs(np.diag(r))
-    rank = int(np.sum(diag > rank_tol * diag[0])) if diag[0] > 0 else 0
-    base, dep = piv[:rank], piv[rank:]
+    n_dh = n if dh is None or n_extra == 0 else np.asarray(dh).size
+    if n_extra:
+        # The corrections first: their span projected out, the pivoted QR picks among the DH columns.
+        q_e = scipy.linalg.orth(J[:, n_dh:])
+        _q, r, piv = scipy.linalg.qr(J[:, :n_dh] - q_e @ (q_e.T @ J[:, :n_dh]), mode='economic', pivoting=True)
+        scale = np.linalg.norm(J[:, :n_dh], axis=0)[piv]
+        diag = np.abs(np.diag(r))
+        keep = diag > rank_tol * max(float(np.max(scale)), 1e-300)
+        dh_rank = int(np.sum(keep)) if diag[0] > 0 else 0
+        base = np.concatenate([piv[:dh_rank], np.arange(n_dh, n)])
+        dep = piv[dh_rank:]
+        rank = dh_rank + q_e.shape[1]
+    else:
+        _q, r, piv = scipy.linalg.qr(J, mode='economic', pivoting=True)
+        diag = np.abs(np.diag(r))
+        rank = int(np.sum(diag > rank_tol * diag[0])) if diag[0] > 0 else 0
+        base, dep = piv[:rank], piv[rank:]
     deps = []
     if dep.size:
         beta = np.linalg.lstsq(J[:, base], J[:, dep], rcond=None)[0]     # (rank, k)
@@ -194,11 +242,12 @@ def analyse_jacobian(J: ArrayLike, names: tuple[str, ...], dh: ArrayLike | None 
     reasons = tuple(_reason(v, table, joint_names) if table is not None
                     else 'the pose Jacobian columns are linearly dependent over the box' for v in deps)
     sv = scipy.linalg.svdvals(J)
-    return Identifiability(tuple(names), sv, rank, tuple(int(i) for i in base), null, tuple(deps), reasons)
+    return Identifiability(tuple(names), sv, rank, tuple(int(i) for i in base), null, tuple(deps), reasons,
+                           n - n_extra if n_extra else n)
 
 
 def analyse(model: ArmModel, n: int = 200, seed: int = 0, dh: ArrayLike | None = None,
-            box: ArrayLike | None = None) -> Identifiability:
+            box: ArrayLike | None = None, extrinsics: Extrinsics | None = None) -> Identifiability:
     """Identifiability of a robot's DH table from full hand poses over its calibration box.
 
     Parameters
@@ -212,11 +261,18 @@ def analyse(model: ArmModel, n: int = 200, seed: int = 0, dh: ArrayLike | None =
         Table to linearise at (default: the model's).
     box : array_like, shape (L, 2), optional
         Joint box [rad] (default: the model's calibration box).
+    extrinsics : Extrinsics, optional
+        Camera / marker corrections estimated with the table (their columns at zero correction).
     """
     table = model.dh if dh is None else np.asarray(dh, dtype=float)
     qs = uniform_configs(model.calibration_box if box is None else box, n, seed)
-    J = model.with_dh(table).jacobian_dh(qs).reshape(-1, table.size)  # noqa: N806
-    return analyse_jacobian(J, parameter_names(model.joint_names), table, model.joint_names)
+    names = parameter_names(model.joint_names)
+    if extrinsics is None or not extrinsics.n:
+        J = model.with_dh(table).jacobian_dh(qs).reshape(-1, table.size)  # noqa: N806
+        return analyse_jacobian(J, names, table, model.joint_names)
+    frames = kinematics.chain_frames(model.base, table, qs)
+    J = extrinsics.predict(frames, np.zeros(extrinsics.n))[1].reshape(-1, table.size + extrinsics.n)  # noqa: N806
+    return analyse_jacobian(J, names + extrinsics.names, table, model.joint_names, n_extra=extrinsics.n)
 
 
 def subspace_nees(error: ArrayLike, P: ArrayLike, basis: ArrayLike) -> float:  # noqa: N803

@@ -39,9 +39,12 @@ held at the initial guess by an explicit prior of standard deviation ``fixed_std
 direction, a residual block of its own (so a jump or a fold into the prior never loosens it):
 the estimate does not drift along them and its covariance says they were not estimated.
 
-``x`` is the flattened DH table, row-major ``(a_0, d_0, alpha_0, offset_0, a_1, ...)``; the
-observation is a hand pose compared on SO(3): ``(p_z - p_h, log(R_z R_h^T))``, the residual of
-:class:`body_schema.ekf.HandPoseModel`.
+``x`` is the flattened DH table, row-major ``(a_0, d_0, alpha_0, offset_0, a_1, ...)``, followed,
+when ``extrinsics`` estimates them (:class:`body_schema.extrinsics.Extrinsics`), by the 6-D
+corrections of the camera's pose and the marker's offset (prior mean 0; the predicted hand pose
+is then ``E FK F``); the observation is a hand pose compared on SO(3):
+``(p_z - p_h, log(R_z R_h^T))``, the residual of :class:`body_schema.ekf.HandPoseModel`. The
+random walk and the change jumps act on the DH block only.
 """
 from __future__ import annotations
 
@@ -54,6 +57,7 @@ from scipy.stats import chi2
 
 from . import kinematics
 from .ekf import FilterError, InvalidInputError
+from .extrinsics import Extrinsics
 
 __all__ = ['MapSettings', 'MapUpdate', 'MapEstimator', 'LOSSES']
 
@@ -214,9 +218,10 @@ class MapEstimator:
     ----------
     base : array_like, shape (4, 4)
         Root to the frame before the first estimated link.
-    x0 : array_like, shape (L, 4) or (4 L,)
-        Prior mean (the initial guess).
-    P0 : array_like, shape (4 L, 4 L)
+    x0 : array_like, shape (L, 4) or (4 L + e,)
+        Prior mean (the initial guess); with ``extrinsics``, followed by its ``e = extrinsics.n``
+        corrections.
+    P0 : array_like, shape (n, n), n = 4 L + e
         Prior covariance (symmetric positive definite).
     settings : MapSettings
     limits : array_like, shape (L, 2), optional
@@ -225,6 +230,9 @@ class MapEstimator:
         Orthonormal directions the data cannot inform, held at ``x0`` (none by default).
     fixed_std : float
         Standard deviation of that prior along each direction [m or rad per unit direction].
+    extrinsics : Extrinsics, optional
+        Camera / marker corrections estimated with the table (none by default: the hand pose is
+        ``FK`` exactly as before).
 
     Attributes
     ----------
@@ -240,13 +248,18 @@ class MapEstimator:
 
     def __init__(self, base: ArrayLike, x0: ArrayLike, P0: ArrayLike,  # noqa: N803
                  settings: MapSettings = MapSettings(), limits: ArrayLike | None = None,
-                 fixed_directions: ArrayLike | None = None, fixed_std: float = 1e-6) -> None:
+                 fixed_directions: ArrayLike | None = None, fixed_std: float = 1e-6,
+                 extrinsics: Extrinsics | None = None) -> None:
         self.base = np.asarray(base, dtype=float)
+        self.extrinsics = extrinsics if extrinsics is not None and extrinsics.n else None
+        n_extra = 0 if self.extrinsics is None else self.extrinsics.n
         x0 = np.array(x0, dtype=float).ravel()
-        if x0.size % kinematics.PARAMS_PER_LINK or not np.all(np.isfinite(x0)):
-            raise InvalidInputError(f'x0 must hold 4 finite parameters per link, got {x0.size} values')
+        if (x0.size - n_extra) % kinematics.PARAMS_PER_LINK or x0.size <= n_extra or not np.all(np.isfinite(x0)):
+            raise InvalidInputError(f'x0 must hold 4 finite parameters per link and {n_extra} extrinsic '
+                                    f'corrections, got {x0.size} values')
         self.n = x0.size
-        self.n_links = self.n // kinematics.PARAMS_PER_LINK
+        self.n_dh = self.n - n_extra
+        self.n_links = self.n_dh // kinematics.PARAMS_PER_LINK
         P0 = np.array(P0, dtype=float)  # noqa: N806
         if P0.shape != (self.n, self.n) or not np.all(np.isfinite(P0)) or \
                 np.max(np.abs(P0 - P0.T)) > 1e-9 * np.max(np.abs(P0)):
@@ -265,9 +278,9 @@ class MapEstimator:
         self.settings = settings
         self.limits = None if limits is None else np.asarray(limits, dtype=float)
         per_link = np.array([settings.q_length, settings.q_length, settings.q_angle, settings.q_angle])
-        self._q = np.tile(per_link, self.n_links)
+        self._q = np.concatenate([np.tile(per_link, self.n_links), np.zeros(n_extra)])
         jump = np.array([settings.jump_length, settings.jump_length, settings.jump_angle, settings.jump_angle])
-        self._jump = np.tile(jump ** 2, self.n_links)
+        self._jump = np.concatenate([np.tile(jump ** 2, self.n_links), np.zeros(n_extra)])
         self._outlier_bound = float(chi2.ppf(settings.outlier_probability, 6))
         self._change_bound = float(chi2.ppf(settings.change_probability, 6)) \
             if settings.change_probability > 0 else np.inf
@@ -291,15 +304,21 @@ class MapEstimator:
 
     def table(self, x: ArrayLike | None = None) -> NDArray[np.float64]:
         """``x`` (default: the estimate) as a DH table, shape (L, 4)."""
-        return np.reshape(self.x if x is None else x, (self.n_links, kinematics.PARAMS_PER_LINK))
+        x = self.x if x is None else np.asarray(x)
+        return np.reshape(x[:self.n_dh], (self.n_links, kinematics.PARAMS_PER_LINK))
 
-    def _frames(self, x: NDArray[np.float64], qs: NDArray[np.float64]) -> NDArray[np.float64]:
-        return kinematics.chain_frames(self.base, self.table(x), qs)
+    def _model(self, x: NDArray[np.float64], qs: NDArray[np.float64], jacobian: bool = True
+               ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+        """Predicted hand poses (N, 4, 4) at ``qs`` (N, L) and their Jacobian (N, 6, n) or None."""
+        frames = kinematics.chain_frames(self.base, self.table(x), qs)
+        if self.extrinsics is not None:
+            return self.extrinsics.predict(frames, x[self.n_dh:], jacobian)
+        return frames[:, -1], kinematics.pose_jacobian_from_frames(frames) if jacobian else None
 
     def predict(self, q: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Predicted hand pose (4, 4) at joints ``q`` (L,) and its Jacobian ``H`` (6, 4 L)."""
-        frames = self._frames(self.x, np.asarray(q, dtype=float)[None])
-        return frames[0, -1], kinematics.pose_jacobian_from_frames(frames)[0]
+        """Predicted hand pose (4, 4) at joints ``q`` (L,) and its Jacobian ``H`` (6, n)."""
+        hands, J = self._model(self.x, np.asarray(q, dtype=float)[None])  # noqa: N806
+        return hands[0], J[0]
 
     @property
     def n_observations(self) -> int:
@@ -442,7 +461,7 @@ class MapEstimator:
         """``L_i^-1`` (N, 6, 6) of ``R_i + H_i D_i H_i^T``, with ``H_i`` at the warm start."""
         R = self.Rs  # noqa: N806
         if np.any(self.drift > 0):
-            J = kinematics.pose_jacobian_from_frames(self._frames(self.x, self.qs))  # noqa: N806
+            J = self._model(self.x, self.qs)[1]  # noqa: N806
             R = R + np.einsum('nij,nj,nkj->nik', J, self.drift, J)  # noqa: N806
         c = np.linalg.cholesky(R)
         return np.linalg.inv(c)
@@ -450,13 +469,13 @@ class MapEstimator:
     def _whitened(self, x: NDArray[np.float64], w: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
         """Whitened observation residuals at ``x``, shape (N, 6)."""
         w = self._effective_whitening() if w is None else w
-        hand = self._frames(x, self.qs)[:, -1]
+        hand = self._model(x, self.qs, jacobian=False)[0]
         return np.einsum('nij,nj->ni', w, pose_residuals(self.zs, hand))
 
     def _solve(self, max_nfev: int | None = None) -> int:
         w = self._effective_whitening()
         lp = _inv_chol(self.P_p, 'prior covariance')
-        base, qs, zs, x_p = self.base, self.qs, self.zs, self.x_p
+        qs, zs, x_p = self.qs, self.zs, self.x_p
 
         # Prior rows first (the fixing prior's below the DH prior's): n + k rows ahead of the observations.
         anchor = np.concatenate([lp @ x_p, self._fix_rows @ self._fix_anchor])
@@ -464,12 +483,12 @@ class MapEstimator:
         m = lp.shape[0]
 
         def fun(x: NDArray[np.float64]) -> NDArray[np.float64]:
-            hand = kinematics.chain_frames(base, self.table(x), qs)[:, -1]
+            hand = self._model(x, qs, jacobian=False)[0]
             r = np.einsum('nij,nj->ni', w, pose_residuals(zs, hand))
             return np.concatenate([lp @ x - anchor, r.ravel()])
 
         def jac(x: NDArray[np.float64]) -> NDArray[np.float64]:
-            J = kinematics.pose_jacobian_from_frames(kinematics.chain_frames(base, self.table(x), qs))  # noqa: N806
+            J = self._model(x, qs)[1]  # noqa: N806
             # d(z (-) h)/dx = -H (first order on SO(3), as in the EKF).
             return np.vstack([lp, -np.einsum('nij,njk->nik', w, J).reshape(-1, self.n)])
 
@@ -509,10 +528,10 @@ class MapEstimator:
         never becomes part of the prior.
         """
         w = self._effective_whitening()[0]
-        frames = self._frames(self.x, self.qs[:1])
-        r = w @ pose_residuals(self.zs[:1], frames[:, -1])[0]
+        hands, jac = self._model(self.x, self.qs[:1])
+        r = w @ pose_residuals(self.zs[:1], hands)[0]
         if float(r @ r) <= self._outlier_bound:
-            J = w @ kinematics.pose_jacobian_from_frames(frames)[0]  # noqa: N806
+            J = w @ jac[0]  # noqa: N806
             lam = np.linalg.inv(self.P_p)
             info = lam + J.T @ J
             # r(x) ~ r - J (x - x_hat): the folded prior keeps the observation's pull at x_hat.

@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from . import kinematics
+from .extrinsics import corrections
 from .noise import NoiseModel, sample_pose
 from .robot import ArmModel
 from .sampling import as_rng, uniform_configs
@@ -46,6 +47,10 @@ class SyntheticRun:
     seed : int or Generator
     changes : dict, optional
         ``{k: table}``: from observation ``k`` (0-based) on, the real table is ``table``.
+    camera_delta, marker_delta : array_like, shape (6,), optional
+        The real camera pose and marker placement differ from the description's by these
+        (:func:`body_schema.extrinsics.perturb_pose`); the observation is what the detector makes
+        of the marker with the description's poses, ``C_nom C^-1 FK M M_nom^-1``.
     """
 
     model: ArmModel
@@ -53,6 +58,8 @@ class SyntheticRun:
     noise: NoiseModel
     seed: int | np.random.Generator = 0
     changes: dict[int, NDArray[np.float64]] = field(default_factory=dict)
+    camera_delta: ArrayLike | None = None
+    marker_delta: ArrayLike | None = None
 
     def table_at(self, k: int) -> NDArray[np.float64]:
         """The real table when observation ``k`` is taken."""
@@ -69,10 +76,12 @@ class SyntheticRun:
         model = self.model
         qs = uniform_configs(model.calibration_box, n, rng) if configs is None else configs(n, rng)
         cam = model.camera_pose('left')
+        big_e, big_f = corrections(cam, model.markers[0].hand_T_marker,
+                                   *(np.zeros(6) if d is None else d for d in (self.camera_delta, self.marker_delta)))
         out = []
         for k, q in enumerate(qs):
             table = self.table_at(k)
-            pose = kinematics.forward_kinematics(model.base, table, q)
+            pose = big_e @ kinematics.forward_kinematics(model.base, table, q) @ big_f
             cov = self.noise.hand_covariance(cam, pose, model.markers)
             out.append(Observation(np.asarray(q, dtype=float), sample_pose(pose, cov, rng), cov, table))
         return out

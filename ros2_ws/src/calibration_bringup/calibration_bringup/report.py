@@ -102,6 +102,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                     help="the estimator during the run, if the launcher overrode the file's")
     ap.add_argument('--robot', help="the run's robot description (packaged name or YAML path), if the launcher "
                                     "overrode the file's")
+    ap.add_argument('--camera-prior', help="the estimator's camera_prior during the run, if the launcher set it")
+    ap.add_argument('--marker-prior', help="the estimator's marker_prior during the run, if the launcher set it")
     args = ap.parse_args(argv)
     out = args.output or args.bag.parent
     try:
@@ -112,6 +114,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             values['estimator'] = args.estimator
         if args.robot is not None:
             values['robot'] = args.robot
+        for key in ('camera_prior', 'marker_prior'):
+            if getattr(args, key) is not None:
+                values[key] = getattr(args, key)
         ev = evaluate_bag(args.bag, EvaluationSettings.from_parameters(values))
         write_csv(ev.rows, out / 'metrics.csv')
         plot_rows(ev.rows, out, title=args.title)

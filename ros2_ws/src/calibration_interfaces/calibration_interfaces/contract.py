@@ -110,6 +110,8 @@ CONTRACT: tuple[ContractTopic, ...] = (
     ContractTopic('/body_schema/estimate', 'std_msgs/msg/Float64MultiArray', LATCHED),
     ContractTopic('/body_schema/covariance', 'std_msgs/msg/Float64MultiArray', LATCHED),
     ContractTopic('/body_schema/true', 'std_msgs/msg/Float64MultiArray', LATCHED),
+    # The simulated camera's and marker's real offsets from the poses the graph is told (2 x 6).
+    ContractTopic('/body_schema/true_extrinsics', 'std_msgs/msg/Float64MultiArray', LATCHED),
     # URDFs for 3D views: the real arm (sim) and the estimate (estimator; links under 'estimate/').
     ContractTopic('/robot_description', 'std_msgs/msg/String', LATCHED),
     ContractTopic('/body_schema/robot_description', 'std_msgs/msg/String', LATCHED),

@@ -19,7 +19,8 @@ from scipy.spatial.transform import Rotation
 from std_msgs.msg import Float64MultiArray, MultiArrayDimension
 
 __all__ = ['table_to_msg', 'msg_to_table', 'covariance_to_msg', 'msg_to_covariance', 'MessageFormatError',
-           'pose_msg_to_matrix', 'matrix_to_pose_msg', 'stamp_to_seconds', 'joints_in_order']
+           'pose_msg_to_matrix', 'matrix_to_pose_msg', 'stamp_to_seconds', 'joints_in_order',
+           'extrinsics_to_msg', 'msg_to_extrinsics']
 
 
 class MessageFormatError(ValueError):
@@ -64,6 +65,18 @@ def covariance_to_msg(P: ArrayLike) -> Float64MultiArray:  # noqa: N803
 def msg_to_covariance(msg: Float64MultiArray, n_params: int = 28) -> NDArray[np.float64]:
     """The (n, n) covariance in a Float64MultiArray."""
     return _msg_matrix(msg, (n_params, n_params), 'covariance')
+
+
+def extrinsics_to_msg(camera: ArrayLike, marker: ArrayLike) -> Float64MultiArray:
+    """Camera and marker offsets (6,) each as a labelled 2 x 6 Float64MultiArray."""
+    return _matrix_msg(np.stack([np.asarray(camera, dtype=float), np.asarray(marker, dtype=float)]),
+                       ('camera_marker', 'xyz_rotvec'))
+
+
+def msg_to_extrinsics(msg: Float64MultiArray) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The camera and marker offsets (6,) each of :func:`extrinsics_to_msg`."""
+    m = _msg_matrix(msg, (2, 6), 'true extrinsics')
+    return m[0].copy(), m[1].copy()
 
 
 def pose_msg_to_matrix(pose: Pose) -> NDArray[np.float64]:

@@ -9,6 +9,14 @@ evidence), counters, an atomic checkpoint of ``(x, P, counters)`` to resume afte
 export of the calibrated model as a DH-table YAML with one-sigma uncertainties and as a URDF.
 Parameter combinations the box cannot identify (:mod:`body_schema.identifiability`) are held at
 the initial guess by the MAP estimator and named in the export (``identifiability``).
+
+With ``camera_prior`` / ``marker_prior`` set (MAP only), the pose of the primary camera
+(``left``) in the root frame and the marker's offset on the flange are estimated with the table
+(:mod:`body_schema.extrinsics`), from the description's poses (the ones the detector uses) and
+the stated prior. The DH parameters they absorb (the first link's ``d`` and ``offset``, the
+last link's row) are held at the description's values, which define the base and flange frames;
+the export adds the camera pose and marker offset with their one-sigma and
+``<stem>_camera_static_transform.yaml`` (tf2_ros ``static_transform_publisher`` arguments).
 """
 from __future__ import annotations
 
@@ -18,14 +26,17 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
+import scipy.linalg
 import yaml
 from numpy.typing import ArrayLike, NDArray
 
 from body_schema import ArmModel
 from body_schema import ekf as ekf_mod
+from body_schema import extrinsics as extrinsics_mod
 from body_schema import identifiability
 from body_schema.map_estimator import LOSSES, MapEstimator, MapSettings
-from body_schema.urdf import model_urdf
+from body_schema.urdf import model_urdf, transform_to_xyz_rpy
+from calibration_interfaces.contract import optical_frame
 from calibration_interfaces.dh_file import write_dh_file
 from calibration_interfaces.outcome import Outcome
 from calibration_interfaces.parameters import setting
@@ -37,6 +48,8 @@ ESTIMATORS = ('map', 'ekf')
 _MAP = MapSettings()
 #: Standard deviation [m or rad per unit direction] of the prior holding unidentifiable directions.
 FIXED_STD = 1e-6
+#: The camera whose pose can be estimated: the contract's primary slot.
+CAMERA = 'left'
 
 
 @dataclass(frozen=True)
@@ -96,6 +109,16 @@ class EstimatorSettings:
     jump_angle: float = setting(_MAP.jump_angle, 'MAP: standard deviation of a detected change for alpha, '
                                 'offset [rad]', (1e-6, 3.2))
     max_nfev: int = setting(_MAP.max_nfev, 'MAP: residual evaluations per re-solve', (1, 10000))
+    camera_prior: str = setting('', 'MAP: estimate the camera pose with the table, prior one-sigma per axis '
+                                '"<m> <deg>" (e.g. "0.02 2" for a tape-measured tripod); empty or 0: known')
+    marker_prior: str = setting('', 'MAP: estimate the marker offset on the flange, prior one-sigma per axis '
+                                '"<m> <deg>" (e.g. "0.005 5"); empty or 0: known')
+
+    @property
+    def extrinsic_priors(self) -> tuple[tuple[float, float] | None, tuple[float, float] | None]:
+        """Parsed ``camera_prior``, ``marker_prior`` ((m, rad) or None: known)."""
+        return (extrinsics_mod.parse_std(self.camera_prior, 'camera_prior'),
+                extrinsics_mod.parse_std(self.marker_prior, 'marker_prior'))
 
     def map_settings(self) -> MapSettings:
         """The MAP estimator's settings (validated there)."""
@@ -120,6 +143,8 @@ class EstimatorSettings:
             raise ValueError(f'gate_warmup must be >= 0, got {self.gate_warmup}')
         if self.iterations < 1:
             raise ValueError(f'iterations must be >= 1, got {self.iterations}')
+        if any(p is not None for p in self.extrinsic_priors) and self.estimator != 'map':
+            raise ValueError(f'camera_prior / marker_prior need estimator map, got {self.estimator!r}')
 
 
 class OnlineEstimator:
@@ -147,12 +172,27 @@ class OnlineEstimator:
             raise ValueError(f'initial guess has {x0.size} parameters, the model {n}')
         self.ekf: ekf_mod.ExtendedKalmanFilter | None = None
         self.map: MapEstimator | None = None
-        # Combinations of the table no hand pose over the box separates (a UR's parallel axes):
-        # the MAP estimator holds them at the initial guess, the export and the report name them.
-        self.identifiability = identifiability.analyse(model)
+        cam_std, marker_std = settings.extrinsic_priors
+        self.extrinsics: extrinsics_mod.Extrinsics | None = None
+        if cam_std is not None or marker_std is not None:
+            self.extrinsics = extrinsics_mod.Extrinsics(model.camera_pose(CAMERA), model.markers[0].hand_T_marker,
+                                                        cam_std, marker_std)
+            # What the camera / marker absorb is not calibrated: the description's values define
+            # the base and flange frames (the estimate is scored in that gauge).
+            x0 = x0.copy()
+            absorbed = list(extrinsics_mod.absorbed_parameters(model.n_joints, cam_std is not None,
+                                                               marker_std is not None))
+            x0[absorbed] = model.dh.ravel()[absorbed]
+            x0 = np.concatenate([x0, np.zeros(self.extrinsics.n)])
+            P0 = scipy.linalg.block_diag(P0, np.diag(self.extrinsics.prior_std() ** 2))  # noqa: N806
+        # Combinations of the table no hand pose over the box separates (a UR's parallel axes, what
+        # the camera or the marker absorbs): the MAP estimator holds them at the initial guess,
+        # the export and the report name them.
+        self.identifiability = identifiability.analyse(model, extrinsics=self.extrinsics)
         if settings.estimator == 'map':
             self.map = MapEstimator(model.base, x0, P0, settings.map_settings(), limits=model.limits,
-                                    fixed_directions=self.identifiability.null_space, fixed_std=FIXED_STD)
+                                    fixed_directions=self.identifiability.held_directions, fixed_std=FIXED_STD,
+                                    extrinsics=self.extrinsics)
         else:
             per_link = np.array([settings.q_length, settings.q_length, settings.q_angle, settings.q_angle])
             self.gate = ekf_mod.chi2_gate(6, settings.gate_probability) if settings.gate_probability > 0 else None
@@ -169,11 +209,23 @@ class OnlineEstimator:
     @property
     def dh(self) -> NDArray[np.float64]:
         """Current estimate, shape (L, 4)."""
-        return self.x.reshape(self.model.dh.shape)
+        return self.x[:self.model.n_params].reshape(self.model.dh.shape)
+
+    def extrinsic_poses(self) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
+        """Estimated camera pose (root frame) and marker placement (flange frame), or None."""
+        if self.extrinsics is None:
+            return None
+        return self.extrinsics.poses(self.x[self.model.n_params:])
 
     @property
     def P(self) -> NDArray[np.float64]:  # noqa: N802
         return self.map.P if self.map is not None else self.ekf.P
+
+    @property
+    def P_dh(self) -> NDArray[np.float64]:  # noqa: N802
+        """The table's block of the covariance, shape (4 L, 4 L) (marginal over any extrinsics)."""
+        n = self.model.n_params
+        return self.P[:n, :n]
 
     @property
     def mahalanobis(self) -> float:
@@ -289,17 +341,48 @@ class OnlineEstimator:
         """The robot with the current DH estimate."""
         return self.model.with_dh(self.dh)
 
+    def _extrinsics_export(self, poses: tuple[NDArray[np.float64], NDArray[np.float64]],
+                           sigma: NDArray[np.float64]) -> dict[str, object]:
+        """The estimated camera pose / marker offset with one-sigma (mm, deg) for the DH YAML."""
+        out: dict[str, object] = {}
+        for i, block in enumerate(self.extrinsics.blocks):
+            pose = poses[0] if block == 'camera' else poses[1]
+            nominal = self.extrinsics.camera if block == 'camera' else self.extrinsics.marker
+            xyz, rpy = transform_to_xyz_rpy(pose)
+            s = sigma[6 * i:6 * i + 6]
+            delta = extrinsics_mod.pose_delta(pose, nominal)
+            out[block] = {
+                'frame': f'{self.model.root_frame} -> {optical_frame(CAMERA)}' if block == 'camera'
+                else 'flange (hand) -> marker',
+                'xyz': [float(v) for v in xyz], 'rpy_deg': [float(v) for v in np.degrees(rpy)],
+                'correction_mm_deg': [float(v) for v in np.concatenate([1e3 * delta[:3], np.degrees(delta[3:])])],
+                'sigma_mm_deg': [float(v) for v in np.concatenate([1e3 * s[:3], np.degrees(s[3:])])],
+                'note': 'correction: position added, rotation vector applied about the frame origin, both in '
+                        'the parent frame; sigma per component of it'}
+        return out
+
     def export(self, directory: str | Path, stem: str = 'calibrated') -> tuple[Path, Path]:
         """Write ``<stem>_dh.yaml`` (table with one-sigma, :mod:`calibration_interfaces.dh_file`) and
         ``<stem>.urdf``; return both paths."""
         directory = Path(directory)
-        sigma = np.sqrt(np.diag(self.P)).reshape(self.model.dh.shape)
+        n_dh = self.model.n_params
+        sigma_all = np.sqrt(np.diag(self.P))
+        sigma = sigma_all[:n_dh].reshape(self.model.dh.shape)
         ident = self.identifiability.as_dict()
         if self.identifiability.n_unidentifiable:
             ident['held'] = (f'at the initial guess by a prior of standard deviation {FIXED_STD:g} along each '
                              f'direction (MAP)' if self.map is not None else 'not held (EKF): the filter may drift along them')
+            if self.extrinsics is not None:
+                ident['held'] += ("; what the camera / marker absorb at the description's values")
+        extra: dict[str, object] = {'updates': self.counters, 'identifiability': ident}
+        poses = self.extrinsic_poses()
+        if poses is not None:
+            extra.update(self._extrinsics_export(poses, sigma_all[n_dh:]))
         yaml_path = write_dh_file(directory / f'{stem}_dh.yaml', self.dh, self.model.joint_names,
-                                  self.model.name, sigma, extra={'updates': self.counters, 'identifiability': ident})
-        urdf_path = directory / f'{stem}.urdf'
+                                  self.model.name, sigma, extra=extra)
+        if poses is not None and 'camera' in self.extrinsics.blocks:
+            tf = extrinsics_mod.static_transform(poses[0], self.model.root_frame, optical_frame(CAMERA))
+            (directory / f'{stem}_camera_static_transform.yaml').write_text(yaml.safe_dump(tf, sort_keys=False))
+        urdf_path = directory / f'{stem}.urdf'  # the arm only: the camera and marker are in the YAML
         urdf_path.write_text(model_urdf(self.calibrated_model()))
         return yaml_path, urdf_path

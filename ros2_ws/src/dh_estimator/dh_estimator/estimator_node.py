@@ -23,7 +23,9 @@ Publications
 /body_schema/estimate : std_msgs/Float64MultiArray (reliable, transient local)
     7 x 4 DH table (a, d, alpha, offset), after every attempt.
 /body_schema/covariance : std_msgs/Float64MultiArray (reliable, transient local)
-    28 x 28 covariance, row-major, same order.
+    28 x 28 covariance, row-major, same order; with ``camera_prior`` / ``marker_prior`` the
+    camera's and the marker's 6-D corrections follow the table (34 or 40 square for the iCub; the
+    selector is told the same priors and reads it so).
 /body_schema/robot_description : std_msgs/String (reliable, transient local)
     URDF of the estimated arm, links under ``estimate/`` (a translucent orange ghost in a 3D
     view), with every estimate.
@@ -125,7 +127,10 @@ class EstimatorNode(Node):
         self.create_subscription(JointTrajectory, '/arm/command', self.on_command, qos_profile(RELIABLE))
         self.create_service(Trigger, '~/export', self.on_export)
         self.publish_estimate()
+        extras = self.estimator.extrinsics
         self.get_logger().info(f'estimating {self.model.n_params} DH parameters of {self.model.name} '
+                               + (f'with the {" and ".join(extras.blocks)} pose ({extras.n} more) '
+                                  if extras is not None else '') +
                                f'with the {settings.estimator.upper()} estimator (initial guess: '
                                f'{s.initial_guess}, noise: {self.noise.noise_model})')
 

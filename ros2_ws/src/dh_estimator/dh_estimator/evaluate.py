@@ -44,12 +44,13 @@ from numpy.typing import NDArray
 from scipy.stats import chi2
 
 from body_schema import load_robot, sampling
+from body_schema.extrinsics import absorbed_parameters, align_truth, perturb_pose, pose_delta
 from body_schema.identifiability import subspace_nees
 from body_schema.map_estimator import LOSSES
 from body_schema.metrics import PoseErrorEvaluator, expected_pose_errors
 from body_schema.noise import NOISE_MODELS
 from calibration_interfaces import mcap_reader
-from calibration_interfaces.messages import msg_to_covariance, msg_to_table
+from calibration_interfaces.messages import msg_to_covariance, msg_to_extrinsics, msg_to_table
 from calibration_interfaces.noise import NoiseSettings
 from calibration_interfaces.parameters import read_params_file
 
@@ -62,7 +63,7 @@ __all__ = ['BagFormatError', 'EvaluationSettings', 'IterationRow', 'Evaluation',
 
 #: Topics the evaluation reads (images are never decoded).
 TOPICS = ('/joint_states', '/arm/command', '/hand_pose', '/body_schema/estimate', '/body_schema/covariance',
-          '/body_schema/true', '/body_schema/update_status', '/calibration/progress')
+          '/body_schema/true', '/body_schema/update_status', '/calibration/progress', '/body_schema/true_extrinsics')
 
 
 class BagFormatError(ValueError):
@@ -139,6 +140,12 @@ class Evaluation:
     unidentifiable: tuple[str, ...] = ()
     identifiable: int = 0
     nees_identifiable: float = float('nan')
+    #: Parameters estimated (the table's, plus 6 per extrinsic block); 0: the table's.
+    parameters: int = 0
+    #: Per estimated extrinsic block ('camera', 'marker'): error (estimate - truth in the table's
+    #: gauge) and one-sigma, 6 each (mm, mm, mm, deg, deg, deg); the truth from
+    #: ``/body_schema/true_extrinsics`` (absent from older bags: error NaN).
+    extrinsics: dict[str, tuple[tuple[float, ...], tuple[float, ...]]] = field(default_factory=dict)
 
     @property
     def max_online_offline_difference(self) -> float:
@@ -185,6 +192,7 @@ def evaluate_bag(path: str | Path, settings: EvaluationSettings = EvaluationSett
     feeder: MessageFeeder | None = None
     evaluator: PoseErrorEvaluator | None = None
     true_dh = online = None
+    true_extrinsics = None
     started = False                 # an update status seen: later estimates are not the initial one
     strategy = ''
     progress: list[tuple[dict[str, Any], NDArray[np.float64], NDArray[np.float64] | None, int]] = []
@@ -202,17 +210,26 @@ def evaluate_bag(path: str | Path, settings: EvaluationSettings = EvaluationSett
         except MessageError:
             pass            # the node ignores it too (with a warning)
 
+    # A camera pose / marker offset estimated with the table absorbs some of its parameters (held
+    # at the description's values): the table is scored in that gauge, what the camera could see.
+    cam_std, marker_std = settings.estimator.extrinsic_priors
+    absorbed = list(absorbed_parameters(model.n_joints, cam_std is not None, marker_std is not None))
+    n_cov = model.n_params + 6 * sum(s is not None for s in (cam_std, marker_std))
     for topic, log_ns, msg in mcap_reader.read_messages(path, TOPICS):
         if topic == '/body_schema/true':
             true_dh = msg_to_table(msg, model.n_joints)
-            evaluator = PoseErrorEvaluator(model.base, true_dh, model.calibration_box)
+            scored = true_dh.copy()
+            scored.ravel()[absorbed] = model.dh.ravel()[absorbed]
+            evaluator = PoseErrorEvaluator(model.base, scored, model.calibration_box)
+        elif topic == '/body_schema/true_extrinsics':
+            true_extrinsics = msg_to_extrinsics(msg)
         elif topic == '/body_schema/estimate':
             online = msg_to_table(msg, model.n_joints)
             if x0 is None and not started:
                 x0 = online.copy()
         elif topic == '/body_schema/covariance':
             if P0 is None and not started:
-                P0 = msg_to_covariance(msg, model.n_params)  # noqa: N806
+                P0 = msg_to_covariance(msg, n_cov)[:model.n_params, :model.n_params]  # noqa: N806
         elif topic == '/body_schema/update_status':
             started = True
         elif topic == '/calibration/progress':
@@ -222,7 +239,7 @@ def evaluate_bag(path: str | Path, settings: EvaluationSettings = EvaluationSett
                 raise BagFormatError(f'{path}: iteration {record.get("iteration")} recorded before any '
                                      'initial estimate and covariance; use initial=perturbed with its seed')
             progress.append((record, estimator.dh.copy(), None if online is None else online.copy(),
-                             estimator.counters['updates'], estimator.P.copy()))
+                             estimator.counters['updates'], estimator.P_dh.copy()))
         else:
             if estimator is None:
                 if x0 is not None and P0 is not None:
@@ -261,10 +278,44 @@ def evaluate_bag(path: str | Path, settings: EvaluationSettings = EvaluationSett
                                  n_updates, float(record.get('selection_s', 0.0)),
                                  float(record.get('sim_time', 0.0)), *limit(dh, P)))
     ident = estimator.identifiability
-    nees = subspace_nees(estimator.x - true_dh.ravel(), estimator.P, ident.identifiable_basis)
+    true_x, extrinsic_errors = _true_state(estimator, true_dh, true_extrinsics)
+    nees = (subspace_nees(estimator.x - true_x, estimator.P, ident.identifiable_basis)
+            if true_x is not None else float('nan'))
     return Evaluation(rows, estimator.dh.copy(), x0 if online is None else online, true_dh,
                       estimator.counters, strategy, bag, dict(feeder.pairer.counters),
-                      tuple(ident.describe()) if ident.n_unidentifiable else (), ident.rank, nees)
+                      tuple(ident.describe()) if ident.n_unidentifiable else (), ident.rank, nees,
+                      len(ident.names), extrinsic_errors)
+
+
+def _true_state(estimator: OnlineEstimator, true_dh: NDArray[np.float64],
+                true_extrinsics: tuple[NDArray[np.float64], NDArray[np.float64]] | None
+                ) -> tuple[NDArray[np.float64] | None, dict[str, tuple[tuple[float, ...], tuple[float, ...]]]]:
+    """The truth as the estimator's state (None if unknown) and each extrinsic block's error and sigma.
+
+    With extrinsics, the truth is taken in the estimate's gauge (:func:`body_schema.extrinsics.align_truth`):
+    the parameters a camera or marker absorbs at the estimate's held values, the camera and the
+    marker moved so that the camera sees the same.
+    """
+    ex = estimator.extrinsics
+    if ex is None:
+        return true_dh.ravel(), {}
+    sigma = np.sqrt(np.diag(estimator.P))[estimator.model.n_params:]
+    deg = np.array([1e3] * 3 + [float(np.degrees(1.0))] * 3)
+    if true_extrinsics is None:
+        return None, {b: ((float('nan'),) * 6, tuple(float(v) for v in sigma[6 * i:6 * i + 6] * deg))
+                      for i, b in enumerate(ex.blocks)}
+    real_cam, real_marker = (perturb_pose(p, d) for p, d in zip((ex.camera, ex.marker), true_extrinsics))
+    dh, cam, marker = align_truth(estimator.model.base, true_dh, real_cam, real_marker, estimator.dh,
+                                  'camera' in ex.blocks, 'marker' in ex.blocks)
+    truth = {'camera': pose_delta(cam, ex.camera), 'marker': pose_delta(marker, ex.marker)}
+    true_x = np.concatenate([dh.ravel()] + [truth[b] for b in ex.blocks])
+    errors = {}
+    for i, b in enumerate(ex.blocks):
+        start = estimator.model.n_params + 6 * i
+        est_pose = perturb_pose(ex.camera if b == 'camera' else ex.marker, estimator.x[start:start + 6])
+        err = pose_delta(est_pose, cam if b == 'camera' else marker)
+        errors[b] = (tuple(float(v) for v in err * deg), tuple(float(v) for v in sigma[6 * i:6 * i + 6] * deg))
+    return true_x, errors
 
 
 def write_csv(rows: Sequence[IterationRow], path: str | Path) -> Path:
@@ -343,13 +394,21 @@ def identifiability_text(ev: Evaluation) -> str:
     """Lines on what the box cannot identify and the NEES on what it can ('' for an old evaluation)."""
     if not ev.identifiable:
         return ''
-    n = ev.final_dh.size
+    n = ev.parameters or ev.final_dh.size
     band = chi2.ppf([0.025, 0.975], ev.identifiable)
     text = (f'\nidentifiable {ev.identifiable} of {n} parameter combinations; final NEES on them '
             f'{ev.nees_identifiable:.1f} (95% band {band[0]:.1f}-{band[1]:.1f})')
     for line in ev.unidentifiable:
-        text += f'\nnot identifiable (held at the initial guess): {line}'
+        held = "the description's value" if ' held in the table' in line else 'the initial guess'
+        text += f'\nnot identifiable (held at {held}): {line}'
+    for block, (err, sigma) in ev.extrinsics.items():
+        text += (f'\n{block} pose error (estimate - truth, in the table\'s gauge) '
+                 f'{_six(err)} mm, deg; one-sigma {_six(sigma)}')
     return text
+
+
+def _six(v: Sequence[float]) -> str:
+    return f'[{", ".join(f"{x:.2f}" for x in v[:3])}] [{", ".join(f"{x:.3f}" for x in v[3:])}]'
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -373,12 +432,14 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument('--iterations', type=int, help='EKF linearisations per update')
     ap.add_argument('--gate-probability', type=float)
     ap.add_argument('--gate-warmup', type=int)
+    ap.add_argument('--camera-prior', help="MAP: the camera pose estimated with the table, prior '<m> <deg>'")
+    ap.add_argument('--marker-prior', help="MAP: the marker offset estimated with the table, prior '<m> <deg>'")
     ap.add_argument('--no-plots', action='store_true', help='write the CSV only')
     return ap
 
 
 _OVERRIDES = ('robot', 'initial_seed', 'noise_model', 'cn_sigma_pos', 'cn_sigma_rot_deg', 'estimator', 'loss',
-              'change_probability', 'iterations', 'gate_probability', 'gate_warmup')
+              'change_probability', 'iterations', 'gate_probability', 'gate_warmup', 'camera_prior', 'marker_prior')
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -169,3 +169,53 @@ def test_export_yaml_and_urdf(arm, tmp_path):
     assert doc['joints'][0]['sigma'][0] == pytest.approx(np.sqrt(est.P[0, 0]))
     text = u.read_text()
     assert text.startswith('<?xml') and 'r_wrist_yaw' in text
+
+
+# --------------------------------------------------------------------------------------------
+# Camera pose and marker offset estimated with the table (UR5e, a fixed camera)
+
+def _ur_estimator(**kw):
+    ur = body_schema.load_robot('ur5e')
+    return ur, OnlineEstimator(ur, sampling.perturb_dh(ur.dh, 3), sampling.initial_covariance(6),
+                               EstimatorSettings(**kw))
+
+
+def test_without_priors_the_estimator_is_the_table_alone():
+    ur, est = _ur_estimator()
+    assert est.extrinsics is None and est.x.shape == (24,) and est.extrinsic_poses() is None
+    np.testing.assert_array_equal(est.P, est.P_dh)
+
+
+def test_camera_and_marker_priors_add_their_states_and_hold_what_they_absorb():
+    ur, est = _ur_estimator(camera_prior='0.02 2', marker_prior='0.005 5')
+    assert est.x.shape == (36,) and est.P_dh.shape == (24, 24)
+    np.testing.assert_allclose(np.sqrt(np.diag(est.P))[24:], [0.02] * 3 + [np.radians(2)] * 3
+                               + [0.005] * 3 + [np.radians(5)] * 3)
+    # pan d and offset, the whole wrist-3 row: at the description's values (they define the frames).
+    for i in (1, 3, 20, 21, 22, 23):
+        assert est.x[i] == ur.dh.ravel()[i]
+    assert est.identifiability.rank == 28
+    cam, marker = est.extrinsic_poses()
+    np.testing.assert_allclose(cam, ur.camera_pose('left'))
+
+
+def test_export_writes_the_camera_pose_with_sigma_and_a_static_transform(tmp_path):
+    ur, est = _ur_estimator(camera_prior='0.02 2', marker_prior='0.005 5')
+    est.map.x[24:30] = [0.01, -0.02, 0.005, 0.0, 0.0, np.radians(1.0)]
+    y, _ = est.export(tmp_path)
+    doc = yaml.safe_load(y.read_text())
+    np.testing.assert_allclose(doc['camera']['correction_mm_deg'], [10, -20, 5, 0, 0, 1], atol=1e-9)
+    np.testing.assert_allclose(doc['camera']['sigma_mm_deg'], [20, 20, 20, 2, 2, 2])
+    np.testing.assert_allclose(doc['camera']['xyz'], ur.camera_pose('left')[:3, 3] + [0.01, -0.02, 0.005])
+    assert doc['marker']['sigma_mm_deg'] == pytest.approx([5.0] * 6)
+    assert any('camera' in u['direction'] for u in doc['identifiability']['unidentifiable'])
+    tf = yaml.safe_load((tmp_path / 'calibrated_camera_static_transform.yaml').read_text())
+    assert tf['frame_id'] == 'base' and tf['child_frame_id'] == 'left_camera_optical_frame'
+    assert [tf['x'], tf['y'], tf['z']] == pytest.approx(doc['camera']['xyz'])
+
+
+@pytest.mark.parametrize('kw, words', [({'camera_prior': '0.02'}, "camera_prior.*'0.02'"),
+                                       ({'marker_prior': '0.005 5', 'estimator': 'ekf'}, 'need estimator map')])
+def test_extrinsic_priors_name_the_bad_value(kw, words):
+    with pytest.raises(ValueError, match=words):
+        EstimatorSettings(**kw)

@@ -252,3 +252,65 @@ def test_an_empty_or_foreign_file_is_one_line_and_a_failure(tmp_path: Path, caps
 
     assert report_main(['--bag', str(bag), '--output', str(tmp_path / 'report')]) == 1
     assert capsys.readouterr().err.startswith(f'calibration_report: {bag} {says}')
+
+
+# --------------------------------------------------------------------------------------------
+# A UR5e whose real camera and marker are off the description's, estimated with the table
+
+def _ur5e_bag(path: Path, with_truth: bool) -> tuple[Path, dict[str, np.ndarray]]:
+    """18 exact attempts through a camera 2 cm / 2 deg and a marker 5 mm / 5 deg off."""
+    from body_schema.extrinsics import corrections, random_delta
+    from calibration_interfaces.messages import extrinsics_to_msg
+    ur = load_robot('ur5e')
+    rng = np.random.default_rng(3)
+    true_dh = sampling.perturb_dh(ur.dh, rng, 0.004, np.radians(2.0))
+    c, m = random_delta(rng, 0.02, np.radians(2.0)), random_delta(rng, 0.005, np.radians(5.0))
+    big_e, big_f = corrections(ur.camera_pose('left'), ur.markers[0].hand_T_marker, c, m)
+    x0 = sampling.perturb_dh(ur.dh, rng, 0.01, np.radians(3.0))
+    bag = Bag(path)
+    bag.put('/body_schema/true', 'std_msgs/msg/Float64MultiArray', table_to_msg(true_dh), 0.0)
+    if with_truth:
+        bag.put('/body_schema/true_extrinsics', 'std_msgs/msg/Float64MultiArray', extrinsics_to_msg(c, m), 0.0)
+    bag.put('/body_schema/estimate', 'std_msgs/msg/Float64MultiArray', table_to_msg(x0), 0.0)
+    # The node publishes the covariance of the table and both corrections (36 x 36).
+    p0 = np.diag(np.concatenate([np.diag(sampling.initial_covariance(6, 0.01, np.radians(3.0))),
+                                 [0.02 ** 2] * 3 + [np.radians(2.0) ** 2] * 3 + [0.005 ** 2] * 3
+                                 + [np.radians(5.0) ** 2] * 3]))
+    bag.put('/body_schema/covariance', 'std_msgs/msg/Float64MultiArray', covariance_to_msg(p0), 0.0)
+    for k, q in enumerate(sampling.uniform_configs(ur.calibration_box, 18, 4), start=1):
+        t0 = 2.0 * k
+        cmd = JointTrajectory(joint_names=list(ur.joint_names), points=[JointTrajectoryPoint(positions=q.tolist())])
+        bag.put('/arm/command', 'trajectory_msgs/msg/JointTrajectory', cmd, t0)
+        for t in np.arange(t0 + 0.01, t0 + 0.5, 0.02):
+            js = JointState(name=list(ur.joint_names), position=q.tolist())
+            js.header.stamp = _stamp(float(t))
+            bag.put('/joint_states', 'sensor_msgs/msg/JointState', js, float(t))
+        hp = PoseWithCovarianceStamped()
+        hp.header.stamp = _stamp(t0 + 0.3)
+        hp.pose.pose = matrix_to_pose_msg(big_e @ ur.with_dh(true_dh).forward_kinematics(q) @ big_f)
+        hp.pose.covariance = np.diag([1e-8] * 3 + [1e-7] * 3).ravel().tolist()     # 0.1 mm, 0.02 deg
+        bag.put('/hand_pose', 'geometry_msgs/msg/PoseWithCovarianceStamped', hp, t0 + 0.5)
+        record = {'iteration': k, 'strategy': 'random', 'outcome': 'accepted', 'detected': True,
+                  'movement_deg': 10.0 * k, 'discarded': 0, 'selection_s': 0.0, 'sim_time': t0 + 0.6}
+        bag.put('/calibration/progress', 'std_msgs/msg/String', String(data=json.dumps(record)), t0 + 0.6)
+    bag.w.close()
+    return path, {'c': c, 'm': m}
+
+
+@pytest.mark.parametrize('with_truth', [True, False])
+def test_camera_and_marker_are_scored_against_the_truth_in_the_tables_gauge(tmp_path: Path, with_truth: bool) -> None:
+    path, _ = _ur5e_bag(tmp_path / 'ur.mcap', with_truth)
+    settings = EvaluationSettings.from_parameters({'robot': 'ur5e', 'camera_prior': '0.02 2',
+                                                   'marker_prior': '0.005 5', 'noise_model': 'pose_dependent'})
+    ev = evaluate_bag(path, settings)
+    assert ev.parameters == 36 and ev.identifiable == 28
+    # Exact observations: the table is right in the description's gauge, whatever the camera did.
+    assert ev.rows[-1].position_mm < 0.5 and ev.rows[-1].orientation_deg < 0.05
+    err, sigma = ev.extrinsics['camera']
+    text = summary_text(ev)
+    assert 'camera pose error' in text and "held at the description's value" in text
+    if with_truth:
+        assert np.all(np.abs(err) < 3.0 * np.asarray(sigma)) and max(abs(e) for e in err[:3]) < 1.0
+        assert np.isfinite(ev.nees_identifiable)
+    else:
+        assert np.all(np.isnan(err)) and np.isnan(ev.nees_identifiable)

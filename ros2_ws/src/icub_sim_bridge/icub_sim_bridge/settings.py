@@ -24,6 +24,11 @@ class SimSettings:
                                 'uniformly with this seed', (-1, 2**31 - 1))
     perturb_width_length: float = setting(0.004, 'Full width of the a, d perturbation [m]', (0.0, 0.1))
     perturb_width_angle_deg: float = setting(2.0, 'Full width of the alpha, offset perturbation [deg]', (0.0, 60.0))
+    camera_perturbation: str = setting('', 'If perturb_seed >= 0: the real cameras are off the description\'s '
+                                       'poses by "<m> <deg>" (a random direction and axis, seeded); the published '
+                                       'poses stay the description\'s; empty = none')
+    marker_perturbation: str = setting('', 'If perturb_seed >= 0: the real marker board is off the description\'s '
+                                       'placement on the flange by "<m> <deg>" (seeded); empty = none')
     body_change: str = setting('', 'A change of the real robot applied mid-run, e.g. "r_wrist_prosup.d+0.010 '
                                'r_shoulder_yaw.offset+3" (m, deg); empty = none (icub_sim_bridge.body_change)')
     body_change_at_command: int = setting(0, 'Apply body_change when this /arm/command arrives (1 = the first), '

@@ -16,10 +16,15 @@ Topics published
 /camera/<name>/camera_info : sensor_msgs/CameraInfo
     K, D (plumb_bob, zeros), R = I, P; with every image, reliable + transient local.
 /camera/<name>/pose : geometry_msgs/PoseStamped
-    Optical frame in ``root_link``; transient local (the head holds still).
+    Optical frame in ``root_link``; transient local (the head holds still). Always the
+    description's pose: with ``camera_perturbation`` the images are rendered from a real pose
+    off it (what a tape-measured camera pose is to a real one).
 /body_schema/true : std_msgs/Float64MultiArray
     The simulated robot's real DH table, L x 4 (a, d, alpha, offset); transient local;
     published again when the body changes.
+/body_schema/true_extrinsics : std_msgs/Float64MultiArray
+    2 x 6: the real camera's and marker board's offsets from the description's poses (position
+    [m], rotation vector [rad], :func:`body_schema.extrinsics.perturb_pose`); transient local.
 /robot_description : std_msgs/String
     URDF of the real arm (links as :func:`body_schema.urdf.chain_transforms` names the TF
     frames, the simulator's geometry); transient local; published again when the body changes.
@@ -47,6 +52,7 @@ run's values.
 """
 from __future__ import annotations
 
+import dataclasses
 import re
 import time
 from typing import Any
@@ -64,11 +70,12 @@ from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
 
 from body_schema.arm_visuals import description_urdf
+from body_schema.extrinsics import corrections, parse_std, perturb_pose, random_delta
 from body_schema.robot import load_robot
 from body_schema.sampling import perturb_dh
 from calibration_interfaces.contract import RELIABLE, optical_frame
 from calibration_interfaces.dh_file import read_dh_file
-from calibration_interfaces.messages import matrix_to_pose_msg, table_to_msg
+from calibration_interfaces.messages import extrinsics_to_msg, matrix_to_pose_msg, table_to_msg
 from calibration_interfaces.node_util import declare_settings, qos_profile, spin_node
 from calibration_interfaces.throttle import KeyedThrottle
 
@@ -112,6 +119,19 @@ class SimNode(Node):
         self.true_dh = true_dh
         # A scheduled (or requested) change of that robot; parsed now so a bad spec fails at start.
         self.body_change = parse_body_change(s.body_change, r.joint_names) if s.body_change else None
+        # Real camera poses and marker board off the description's (which the graph is told).
+        cam_error = parse_std(s.camera_perturbation, 'camera_perturbation')
+        marker_error = parse_std(s.marker_perturbation, 'marker_perturbation')
+        rng = np.random.default_rng([max(s.perturb_seed, 0), 16])     # a stream of its own: the DH draw is unchanged
+        cam_delta = random_delta(rng, *cam_error) if cam_error and s.perturb_seed >= 0 else np.zeros(6)
+        marker_delta = random_delta(rng, *marker_error) if marker_error and s.perturb_seed >= 0 else np.zeros(6)
+        if np.any(marker_delta):
+            board = corrections(np.eye(4), r.markers[0].hand_T_marker, np.zeros(6), marker_delta)[1]
+            real_robot = dataclasses.replace(r, markers=tuple(
+                dataclasses.replace(m, hand_T_marker=board @ m.hand_T_marker) for m in r.markers))
+        else:
+            real_robot = r
+        self.true_extrinsics = (cam_delta, marker_delta)
         self.body_changed = False
         self.commands = 0
         head = None   # fixed cameras only: no head
@@ -119,7 +139,7 @@ class SimNode(Node):
             head = np.radians(np.asarray(s.head_pose_deg, dtype=float)) if s.head_pose_deg else r.eyes.head_pose
             if head.shape != (len(r.eyes.head_joints),):
                 raise ValueError(f'head_pose_deg needs {len(r.eyes.head_joints)} angles, got {list(s.head_pose_deg)}')
-        self.world = SimWorld(r, true_dh, marker_dictionary=s.marker_dictionary or None,
+        self.world = SimWorld(real_robot, true_dh, marker_dictionary=s.marker_dictionary or None,
                               marker_ids=list(s.marker_ids) or None,
                               marker_side_length=s.marker_side_length or None,
                               head_pose=head, physics_step=s.physics_step)
@@ -127,7 +147,8 @@ class SimNode(Node):
             if 0 < px < MIN_IMAGE_PX:
                 raise ValueError(f'{name} {px} px is below {MIN_IMAGE_PX} px (0: the description\'s camera)')
         self.intrinsics = r.camera.scaled(s.image_width or r.camera.width, s.image_height or r.camera.height)
-        self.cameras = {eye: r.camera_pose(eye, head) for eye in cameras}
+        self.cameras = {eye: r.camera_pose(eye, head) for eye in cameras}      # published
+        self.real_cameras = {eye: perturb_pose(pose, cam_delta) for eye, pose in self.cameras.items()}
         q0 = (np.radians(np.asarray(s.initial_positions_deg, dtype=float)) if s.initial_positions_deg
               else r.calibration_box.mean(axis=1))
         q0 = validate_command(self.robot.joint_names, [q0], [], self.robot.joint_names,
@@ -154,6 +175,8 @@ class SimNode(Node):
         self.pub_clock = self.create_publisher(ClockMsg, '/clock', qos_profile('/clock'))
         self.pub_js = self.create_publisher(JointState, '/joint_states', qos_profile('/joint_states'))
         self.pub_true = self.create_publisher(Float64MultiArray, '/body_schema/true', qos_profile('/body_schema/true'))
+        self.pub_true_extrinsics = self.create_publisher(Float64MultiArray, '/body_schema/true_extrinsics',
+                                                         qos_profile('/body_schema/true_extrinsics'))
         self.pub_description = self.create_publisher(String, '/robot_description', qos_profile('/robot_description'))
         self.pub_img, self.pub_info, self.pub_pose = {}, {}, {}
         for eye in self.cameras:
@@ -174,6 +197,11 @@ class SimNode(Node):
             f'simulating {self.robot.name} ({"perturbed" if not np.allclose(true_dh, self.robot.dh) else "nominal"} '
             f'DH), cameras {list(self.cameras)} {self.intrinsics.width}x{self.intrinsics.height} at '
             f'{s.image_rate} Hz, physics step {s.physics_step} s, real-time factor {self.rtf}')
+        if np.any(cam_delta) or np.any(marker_delta):
+            self.get_logger().info(
+                f'real camera off the published pose by {1e3 * cam_delta[:3].round(5)} mm, '
+                f'{np.degrees(cam_delta[3:]).round(4)} deg (rotation vector); marker board off by '
+                f'{1e3 * marker_delta[:3].round(6)} mm, {np.degrees(marker_delta[3:]).round(4)} deg')
 
     # ------------------------------------------------------------------------------------------
     # Messages
@@ -184,6 +212,7 @@ class SimNode(Node):
 
     def _publish_latched(self) -> None:
         self._publish_real_arm()
+        self.pub_true_extrinsics.publish(extrinsics_to_msg(*self.true_extrinsics))
         for eye, pose in self.cameras.items():
             ps = PoseStamped(pose=matrix_to_pose_msg(pose))
             ps.header.frame_id = self.robot.root_frame
@@ -203,7 +232,7 @@ class SimNode(Node):
 
     def _publish_images(self, stamp: TimeMsg) -> None:
         self.world.set_joint_positions(self.follower.q)
-        for eye, pose in self.cameras.items():
+        for eye, pose in self.real_cameras.items():    # rendered from the real poses
             rgb = self.world.render(pose, self.intrinsics, supersample=self._supersample)
             rgb = degrade(rgb, self._noise_std, self._blur, self._rng)
             img = Image()

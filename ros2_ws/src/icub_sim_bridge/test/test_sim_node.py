@@ -300,3 +300,31 @@ def test_the_body_changes_at_the_scheduled_command_and_the_truth_follows(ros) ->
 def test_a_bad_body_change_fails_at_start(ros) -> None:
     with pytest.raises(ValueError, match='r_knee'):
         make_sim(ros, body_change='r_knee.d+0.01')
+
+
+def test_a_perturbed_camera_and_marker_are_rendered_but_the_description_is_published(ros) -> None:
+    """camera_perturbation / marker_perturbation: the images come from the real poses, the graph
+    is told the description's, and /body_schema/true_extrinsics says by how much they differ."""
+    from body_schema.extrinsics import perturb_pose
+    from calibration_interfaces.messages import msg_to_extrinsics, pose_msg_to_matrix
+
+    ur = load_robot('ur5e')
+    sim = make_sim(ros, robot='ur5e', image_rate=0.0, perturb_seed=3, camera_perturbation='0.02 2',
+                   marker_perturbation='0.005 5')
+    probe = ros.node('probe_extrinsics')
+    got = {}
+    for name, typ in (('/camera/left/pose', PoseStamped), ('/body_schema/true_extrinsics', Float64MultiArray)):
+        probe.create_subscription(typ, name, lambda msg, name=name: got.__setitem__(name, msg), LATCHED)
+    ros.spin_until(lambda: len(got) == 2, 10.0, f'the camera pose and the true extrinsics; got {sorted(got)}')
+    np.testing.assert_allclose(pose_msg_to_matrix(got['/camera/left/pose'].pose), ur.camera_pose('left'), atol=1e-12)
+    cam, marker = msg_to_extrinsics(got['/body_schema/true_extrinsics'])
+    assert np.linalg.norm(cam[:3]) == pytest.approx(0.02) and np.degrees(np.linalg.norm(cam[3:])) == pytest.approx(2.0)
+    assert np.linalg.norm(marker[:3]) == pytest.approx(0.005)
+    assert np.degrees(np.linalg.norm(marker[3:])) == pytest.approx(5.0)
+    np.testing.assert_allclose(sim.real_cameras['left'], perturb_pose(ur.camera_pose('left'), cam), atol=1e-12)
+    # The world draws the marker where the real board is.
+    np.testing.assert_allclose(sim.world.markers[0].placement.hand_T_marker,
+                               perturb_pose(ur.markers[0].hand_T_marker, marker), atol=1e-12)
+    # The DH draw is the same as without them (a stream of its own).
+    plain = make_sim(ros, robot='ur5e', image_rate=0.0, perturb_seed=3)
+    np.testing.assert_array_equal(plain.true_dh, sim.true_dh)

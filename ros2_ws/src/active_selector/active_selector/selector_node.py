@@ -28,7 +28,7 @@ Publications
 Parameters
 ----------
 Declared from the settings dataclasses of :mod:`active_selector.node_settings` (one default, one
-description and one range each): robot, eye, progress_file, wait_report_period
+description and one range each): robot, eye, progress_file, resume, wait_report_period
 (SelectorNodeSettings); strategy ('random' | 'al' | 'ucsal' | 'ccsal'), seed, gamma, delta,
 optimizer, algorithm, max_evals, n_candidates, refine_starts, refine_evals, local_algorithm,
 repeat_tolerance (StrategySettings); penalty_a, penalty_b, occlusion_length_scale,
@@ -90,9 +90,13 @@ class SelectorNode(Node):
         self.iterations = loop_settings.iterations
         self.loop = CalibrationLoop(self.planner, loop_settings, self.now)
         self.progress_file = Path(self.settings.progress_file) if self.settings.progress_file else None
+        resumed = 0
         if self.progress_file is not None:
             self.progress_file.parent.mkdir(parents=True, exist_ok=True)
-            self.progress_file.write_text('')
+            if self.settings.resume and self.progress_file.exists():
+                resumed = self._resume(self.progress_file)
+            else:
+                self.progress_file.write_text('')
 
         self.dh: np.ndarray | None = None
         self.P: np.ndarray | None = None
@@ -118,7 +122,39 @@ class SelectorNode(Node):
         config = strategy.config()
         self.get_logger().info(f'{config.strategy.value} run of {self.iterations} iterations '
                                f'({config.search}; {self.planner.settings.criterion}, occlusion '
-                               f'{self.planner.settings.occlusion_mode})')
+                               f'{self.planner.settings.occlusion_mode})'
+                               + (f', resumed after iteration {resumed}' if resumed else ''))
+
+    def _resume(self, path: Path) -> int:
+        """Account the iterations recorded in ``path`` (movement, occlusion model, count); their number.
+
+        A record cut short by the interruption (the last line) is dropped; the next iteration
+        number follows the records kept. (The strategy's random stream starts anew.)
+
+        Raises
+        ------
+        ValueError
+            If a record lacks a field, or the file holds the whole run already.
+        """
+        lines = path.read_text().splitlines()
+        records = []
+        for i, line in enumerate(lines):
+            try:
+                records.append(json.loads(line))
+            except json.JSONDecodeError:
+                if i < len(lines) - 1:
+                    raise ValueError(f'{path}: line {i + 1} is not JSON: {line[:80]!r}') from None
+        for r in records:
+            try:
+                self.planner.record(np.radians(r['target_deg']), np.radians(r['reached_deg']), r['outcome'],
+                                    bool(r['detected']), float(r['selection_s']))
+            except KeyError as exc:
+                raise ValueError(f'{path}: iteration record without {exc}: {r}') from None
+        if len(records) >= self.iterations:
+            raise ValueError(f'{path} records {len(records)} iterations already; nothing to resume '
+                             f'(iterations: {self.iterations})')
+        path.write_text(''.join(json.dumps(r) + '\n' for r in records))      # without a torn last line
+        return len(records)
 
     # ---------------------------------------------------------------------------------- inputs
 

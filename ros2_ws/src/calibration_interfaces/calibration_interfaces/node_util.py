@@ -5,6 +5,7 @@
   (:mod:`calibration_interfaces.parameters`);
 * :class:`WarnOnce`: a warning logged once per key;
 * :func:`message_class`;
+* :class:`RunGuard`: stops a node that shares its domain with another run;
 * :func:`spin_node`: a node's ``main``.
 """
 from __future__ import annotations
@@ -20,11 +21,16 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import String
 
-from .contract import Durability, QosSpec, Reliability, topic
+from .contract import RUN_ID_TOPIC, Durability, QosSpec, Reliability, RunSettings, topic
 from .parameters import ParameterSpec, parameter_specs, settings_from_parameters
 
-__all__ = ['qos_profile', 'descriptor', 'declare_settings', 'WarnOnce', 'message_class', 'spin_node']
+__all__ = ['qos_profile', 'descriptor', 'declare_settings', 'WarnOnce', 'message_class', 'RunGuard', 'spin_node',
+           'RUN_CONFLICT_STATUS']
+
+#: Exit status of a node stopped by :class:`RunGuard`.
+RUN_CONFLICT_STATUS = 3
 
 
 def qos_profile(spec: QosSpec | str, depth: int | None = None) -> QoSProfile:
@@ -143,22 +149,72 @@ def message_class(type_name: str) -> type:
         raise ImportError(f'message type {type_name!r} is not installed: {exc}') from exc
 
 
+class RunGuard:
+    """Latches the node's run id on ``/calibration/run_id``; another id there stops the node.
+
+    Two graphs on one ROS domain would otherwise mix their messages silently (joint states of one
+    robot paired with hand poses of the other). On the first foreign id the guard logs an error,
+    records it in :attr:`conflict` and shuts the node's context down, so no callback takes
+    another message; :func:`spin_node` then exits with :data:`RUN_CONFLICT_STATUS`.
+
+    Parameters
+    ----------
+    node : Node
+    run_id : str
+        Non-empty id of this node's run.
+    """
+
+    def __init__(self, node: Node, run_id: str) -> None:
+        if not run_id:
+            raise ValueError('RunGuard needs a non-empty run id')
+        self.node, self.run_id = node, run_id
+        self.conflict: str | None = None
+        qos = qos_profile(RUN_ID_TOPIC)
+        self._pub = node.create_publisher(String, RUN_ID_TOPIC, qos)
+        self._pub.publish(String(data=run_id))
+        self._sub = node.create_subscription(String, RUN_ID_TOPIC, self._on_run_id, qos)
+
+    def _on_run_id(self, msg: String) -> None:
+        if msg.data == self.run_id or self.conflict is not None:
+            return
+        self.conflict = msg.data
+        self.node.get_logger().error(
+            f'another run ({msg.data!r}) is on ROS_DOMAIN_ID {self.node.get_domain_id()}; this node of run '
+            f'{self.run_id!r} stops rather than mix the two runs\' messages (give each run its own domain)')
+        self.node.context.try_shutdown()
+
+
 def spin_node(make_node: Callable[[], Node], args: list[str] | None = None,
               run: Callable[[Node], None] | None = None) -> None:
     """A node executable's ``main``: init, spin until Ctrl-C or shutdown, destroy the node, shut down.
 
     ``run(node)`` drives the node (default ``rclpy.spin``: until shutdown); a node that ends by
-    itself passes its own loop. SIGINT and SIGTERM end it (rclpy's handlers shut the context
-    down); ``destroy_node`` then runs, so a node can finish its files or close its servers there.
+    itself passes its own loop. SIGINT and SIGTERM end it (rclpy's handlers, installed by
+    ``rclpy.init``, shut the context down, also while ``make_node`` runs); ``destroy_node`` then
+    runs, so a node can finish its files or close its servers there. The node declares
+    ``run_id`` (:class:`~calibration_interfaces.contract.RunSettings`); a non-empty one is
+    guarded by :class:`RunGuard`.
+
+    Raises
+    ------
+    SystemExit
+        With :data:`RUN_CONFLICT_STATUS` when the node stopped on another run's id.
     """
     rclpy.init(args=args)
     node = None
+    guard = None
     try:
         node = make_node()
-        (rclpy.spin if run is None else run)(node)
+        run_id = declare_settings(node, RunSettings, read_only=True).run_id
+        if run_id and node.context.ok():
+            guard = RunGuard(node, run_id)
+        if node.context.ok():      # a SIGINT during make_node already shut the context down
+            (rclpy.spin if run is None else run)(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+    if guard is not None and guard.conflict is not None:
+        raise SystemExit(RUN_CONFLICT_STATUS)

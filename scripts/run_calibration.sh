@@ -114,8 +114,11 @@ timeout=${timeout:-$((60 + 20 * iterations))}
 [[ "$max_timeouts" =~ ^(0(\.[0-9]*)?|1(\.0*)?|\.[0-9]+)$ ]] || die "--max-timeouts must be a fraction 0-1, got '$max_timeouts'"
 is_number "$max_disagreement" || die "--max-disagreement must be a non-negative number (mm), got '$max_disagreement'"
 body_change_at=${body_change_at:-$(( (iterations + 1) / 2 + 1 ))}
-[[ "$body_change_at" =~ ^[1-9][0-9]*$ ]] || die "--body-change-at must be a positive integer, got '$body_change_at'"
-[ -n "$body_change" ] || body_change_at=0
+if [ -n "$body_change" ]; then
+  [[ "$body_change_at" =~ ^[1-9][0-9]*$ ]] || die "--body-change-at must be a positive integer, got '$body_change_at'"
+else
+  body_change_at=0
+fi
 # The output directory: new or empty, unless the run resumes it or the user asked to overwrite it
 # (then only what a run writes is removed, so no stale report or model sits beside the new bag).
 if [ -z "$resume" ] && [ -d "$output" ] && [ -n "$(ls -A "$output")" ]; then

@@ -129,7 +129,8 @@ class SelectorNode(Node):
         """Account the iterations recorded in ``path`` (movement, occlusion model, count); their number.
 
         A record cut short by the interruption (the last line) is dropped; the next iteration
-        number follows the records kept. (The strategy's random stream starts anew.)
+        number follows the records kept, the movement continues from the recorded total and from
+        the last configuration reached. (The strategy's random stream starts anew.)
 
         Raises
         ------
@@ -146,10 +147,14 @@ class SelectorNode(Node):
                     raise ValueError(f'{path}: line {i + 1} is not JSON: {line[:80]!r}') from None
         for r in records:
             try:
+                if self.planner.start is None:      # movement is the recorded total (below), not re-derived
+                    self.planner.start = np.radians(r['reached_deg'])
                 self.planner.record(np.radians(r['target_deg']), np.radians(r['reached_deg']), r['outcome'],
                                     bool(r['detected']), float(r['selection_s']))
             except KeyError as exc:
                 raise ValueError(f'{path}: iteration record without {exc}: {r}') from None
+        if records:
+            self.planner.movement_deg = float(records[-1]['movement_deg'])
         if len(records) >= self.iterations:
             raise ValueError(f'{path} records {len(records)} iterations already; nothing to resume '
                              f'(iterations: {self.iterations})')

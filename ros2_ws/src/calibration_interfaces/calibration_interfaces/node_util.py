@@ -169,6 +169,7 @@ class RunGuard:
             raise ValueError('RunGuard needs a non-empty run id')
         self.node, self.run_id = node, run_id
         self.conflict: str | None = None
+        self.domain_id = node.context.get_domain_id()
         qos = qos_profile(RUN_ID_TOPIC)
         self._pub = node.create_publisher(String, RUN_ID_TOPIC, qos)
         self._pub.publish(String(data=run_id))
@@ -179,7 +180,7 @@ class RunGuard:
             return
         self.conflict = msg.data
         self.node.get_logger().error(
-            f'another run ({msg.data!r}) is on ROS_DOMAIN_ID {self.node.get_domain_id()}; this node of run '
+            f'another run ({msg.data!r}) is on ROS_DOMAIN_ID {self.domain_id}; this node of run '
             f'{self.run_id!r} stops rather than mix the two runs\' messages (give each run its own domain)')
         self.node.context.try_shutdown()
 

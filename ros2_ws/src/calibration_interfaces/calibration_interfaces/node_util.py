@@ -11,6 +11,7 @@
 from __future__ import annotations
 
 import importlib
+import signal
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -21,6 +22,7 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions, install_signal_handlers
 from std_msgs.msg import String
 
 from .contract import RUN_ID_TOPIC, Durability, QosSpec, Reliability, RunSettings, topic
@@ -187,29 +189,38 @@ class RunGuard:
 
 def spin_node(make_node: Callable[[], Node], args: list[str] | None = None,
               run: Callable[[Node], None] | None = None) -> None:
-    """A node executable's ``main``: init, spin until Ctrl-C or shutdown, destroy the node, shut down.
+    """A node executable's ``main``: init, build, spin until Ctrl-C or shutdown, destroy, shut down.
 
     ``run(node)`` drives the node (default ``rclpy.spin``: until shutdown); a node that ends by
-    itself passes its own loop. SIGINT and SIGTERM end it (rclpy's handlers, installed by
-    ``rclpy.init``, shut the context down, also while ``make_node`` runs); ``destroy_node`` then
-    runs, so a node can finish its files or close its servers there. The node declares
-    ``run_id`` (:class:`~calibration_interfaces.contract.RunSettings`); a non-empty one is
-    guarded by :class:`RunGuard`.
+    itself passes its own loop. SIGINT and SIGTERM end it at any moment after this is called:
+    while ``make_node`` builds the node (seconds for some) a signal is only remembered, so the
+    node is built whole and then destroyed without spinning (a KeyboardInterrupt raised inside
+    its constructor would lose the node, and with it the estimator's export); after that,
+    rclpy's handlers shut the context down. ``destroy_node`` runs in every case, so a node can
+    finish its files, exports or servers there. The node declares ``run_id``
+    (:class:`~calibration_interfaces.contract.RunSettings`); a non-empty one is guarded by
+    :class:`RunGuard`.
 
     Raises
     ------
     SystemExit
         With :data:`RUN_CONFLICT_STATUS` when the node stopped on another run's id.
     """
-    rclpy.init(args=args)
+    received: list[int] = []
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        # Also undoes an inherited SIG_IGN (a background job of a script starts with SIGINT ignored).
+        signal.signal(signum, lambda s, _frame: received.append(s))
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     guard = None
     try:
         node = make_node()
         run_id = declare_settings(node, RunSettings, read_only=True).run_id
-        if run_id and node.context.ok():
+        if run_id:
             guard = RunGuard(node, run_id)
-        if node.context.ok():      # a SIGINT during make_node already shut the context down
+        # From now on a signal shuts the context down (and still reaches the recorder above).
+        install_signal_handlers(SignalHandlerOptions.ALL)
+        if not received:
             (rclpy.spin if run is None else run)(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

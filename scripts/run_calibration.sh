@@ -204,30 +204,33 @@ trap 'exit 129' HUP
 
 # --- An isolated graph ----------------------------------------------------------------------
 # A domain is held for the whole run by a lock file (the launcher keeps it open), so two
-# launchers never pick the same one; a forced domain is also probed for a graph that talks on
-# it already (one not started by this script). The run id reaches every node (parameter
-# run_id): a node that sees another run's id on its domain stops and the run fails.
+# launchers never pick the same one, and probed for a graph that talks on it already (one not
+# started by this script). The run id reaches every node (parameter run_id): a node that sees
+# another run's id, or another node of its own name, on its domain stops and the run fails.
+export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 lock_dir=${TMPDIR:-/tmp}/run_calibration.domains
 mkdir -p "$lock_dir"
 take_domain() { # take_domain N: lock domain N for this run
   exec {domain_fd}>"$lock_dir/$1.lock"
   flock -n "$domain_fd" || { exec {domain_fd}>&-; return 1; }
 }
+quiet_domain() { python3 -m calibration_bringup.graph_probe --domain-id "$1"; }   # no graph talks on it
 if [ -n "$domain_id" ]; then
   take_domain "$domain_id" || die "ROS_DOMAIN_ID $domain_id is used by another run_calibration run; choose another --domain-id or leave it out"
-  python3 -m calibration_bringup.graph_probe --domain-id "$domain_id" || \
+  quiet_domain "$domain_id" || \
     die "ROS_DOMAIN_ID $domain_id already has a ROS graph talking on it (see above); choose another --domain-id or leave it out"
 else
   first=$((RANDOM % 100))
   for ((k = 0; k < 100; k++)); do
-    domain_id=$((100 + (first + k) % 100))
-    take_domain "$domain_id" && break
-    domain_id=""
+    candidate=$((100 + (first + k) % 100))
+    take_domain "$candidate" || continue
+    if quiet_domain "$candidate" 2>/dev/null; then domain_id=$candidate; break; fi
+    echo "run_calibration: ROS_DOMAIN_ID $candidate has a graph not started by this script; trying another" >&2
+    exec {domain_fd}>&-
   done
-  [ -n "$domain_id" ] || die "no free ROS_DOMAIN_ID in 100-199 (each is held by a running run_calibration)"
+  [ -n "$domain_id" ] || die "no free ROS_DOMAIN_ID in 100-199 (each is held by a run or has a graph talking on it)"
 fi
 export ROS_DOMAIN_ID=$domain_id
-export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 export PYTHONUNBUFFERED=1 RCUTILS_COLORIZED_OUTPUT=0 RCUTILS_LOGGING_BUFFERED_STREAM=0
 if [ -z "${FASTRTPS_DEFAULT_PROFILES_FILE:-}" ] && [ -f "$config/fastdds_shm.xml" ]; then
   # Shared-memory segments large enough for whole camera frames (README: Fast DDS profile).

@@ -111,8 +111,9 @@ def test_sigint_right_after_the_nodes_start_stops_the_whole_graph_within_seconds
         launcher.send_signal(signal.SIGINT)
         _, err = launcher.communicate(timeout=30)
         took = time.monotonic() - t0
+        logs = {f.stem: f.read_text()[-1500:] for f in (out / 'logs').glob('*.log')}
         assert launcher.returncode == 130, err
-        assert 'did not stop on SIGINT' not in err, (delay, err)
+        assert 'did not stop on SIGINT' not in err, (delay, err, logs)
         assert took < 10.0, (delay, took, err)
         assert not _processes_with(run_id), (delay, _processes_with(run_id))
 
@@ -184,7 +185,7 @@ def test_a_node_that_sees_another_run_id_stops_taking_input(ros) -> None:
             return mine.conflict is not None and theirs.conflict is not None
 
         ros.spin_until(step, 10.0, 'both runs to see each other')
-        assert mine.conflict == 'run-b' and theirs.conflict == 'run-a'
+        assert "'run-b'" in mine.conflict and "'run-a'" in theirs.conflict
         assert not ros.context.ok() and not other_context.ok()            # no callback takes input any more
     finally:
         other_exec.shutdown()
@@ -222,3 +223,26 @@ def test_an_interrupted_run_resumed_loses_no_accepted_observation(tmp_path: Path
     assert after > 0 and updates_after == updates_before + after
     assert 'resumed after iteration' in (tmp_path / 'logs' / 'selector.log').read_text()
     assert 'resumed from checkpoint' in (tmp_path / 'logs' / 'estimator.log').read_text()
+
+
+def test_a_graph_without_run_ids_is_seen_by_its_node_names(ros) -> None:
+    """An old launcher's graph publishes no run id: a second node of the same name gives it away."""
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.node import Node
+
+    from calibration_interfaces.node_util import RunGuard
+
+    guard = RunGuard(ros.node('dh_estimator'), 'run-a', period=0.1)
+    ros.spin_for(0.5)
+    assert guard.conflict is None                                  # alone: its own name once
+    other_context = Context()
+    rclpy.init(context=other_context, domain_id=ros.domain_id)
+    other = Node('dh_estimator', context=other_context)            # no guard, no run id
+    try:
+        ros.spin_until(lambda: guard.conflict is not None, 15.0, 'the guard to see the second dh_estimator')
+        assert "another node named '/dh_estimator'" in guard.conflict
+        assert not ros.context.ok()
+    finally:
+        other.destroy_node()
+        rclpy.try_shutdown(context=other_context)

@@ -23,7 +23,7 @@ __all__ = ['graph_on_domain', 'main']
 _OWN_TOPICS = {'/rosout', '/parameter_events'}
 
 
-def graph_on_domain(domain_id: int, seconds: float = 1.5) -> tuple[list[str], list[str]]:
+def graph_on_domain(domain_id: int, seconds: float = 2.5) -> tuple[list[str], list[str]]:
     """The other nodes and the topics seen on ``domain_id`` within ``seconds`` of discovery.
 
     Returns
@@ -57,7 +57,7 @@ def graph_on_domain(domain_id: int, seconds: float = 1.5) -> tuple[list[str], li
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog='graph_probe', description=__doc__.split('\n\n')[0])
     ap.add_argument('--domain-id', type=int, required=True)
-    ap.add_argument('--seconds', type=float, default=1.5, help='how long discovery may take')
+    ap.add_argument('--seconds', type=float, default=2.5, help='how long discovery may take')
     args = ap.parse_args(argv)
     nodes, topics = graph_on_domain(args.domain_id, args.seconds)
     if nodes or topics:

@@ -18,6 +18,7 @@ from typing import Any
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 import rclpy
 from rclpy.exceptions import ParameterUninitializedException
+from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -155,18 +156,21 @@ class RunGuard:
     """Latches the node's run id on ``/calibration/run_id``; another id there stops the node.
 
     Two graphs on one ROS domain would otherwise mix their messages silently (joint states of one
-    robot paired with hand poses of the other). On the first foreign id the guard logs an error,
-    records it in :attr:`conflict` and shuts the node's context down, so no callback takes
-    another message; :func:`spin_node` then exits with :data:`RUN_CONFLICT_STATUS`.
+    robot paired with hand poses of the other). On the first foreign id, or a second node of this
+    node's name (a graph started without run ids), the guard logs an error, records what it saw
+    in :attr:`conflict` and shuts the node's context down, so no callback takes another message;
+    :func:`spin_node` then exits with :data:`RUN_CONFLICT_STATUS`.
 
     Parameters
     ----------
     node : Node
     run_id : str
         Non-empty id of this node's run.
+    period : float
+        Wall seconds between two looks at the graph for a node of the same name.
     """
 
-    def __init__(self, node: Node, run_id: str) -> None:
+    def __init__(self, node: Node, run_id: str, period: float = 1.0) -> None:
         if not run_id:
             raise ValueError('RunGuard needs a non-empty run id')
         self.node, self.run_id = node, run_id
@@ -176,14 +180,26 @@ class RunGuard:
         self._pub = node.create_publisher(String, RUN_ID_TOPIC, qos)
         self._pub.publish(String(data=run_id))
         self._sub = node.create_subscription(String, RUN_ID_TOPIC, self._on_run_id, qos)
+        # A graph started without run ids (another launcher, by hand) shows as a second node of
+        # this node's name; the graph is polled on a wall-clock timer (sim time may stand still).
+        self._timer = node.create_timer(period, self._check_names, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     def _on_run_id(self, msg: String) -> None:
-        if msg.data == self.run_id or self.conflict is not None:
+        if msg.data != self.run_id:
+            self._stop(f'another run ({msg.data!r})')
+
+    def _check_names(self) -> None:
+        me = (self.node.get_name(), self.node.get_namespace())
+        if self.node.get_node_names_and_namespaces().count(me) > 1:
+            self._stop(f'another node named {self.node.get_fully_qualified_name()!r}')
+
+    def _stop(self, what: str) -> None:
+        if self.conflict is not None:
             return
-        self.conflict = msg.data
+        self.conflict = what
         self.node.get_logger().error(
-            f'another run ({msg.data!r}) is on ROS_DOMAIN_ID {self.domain_id}; this node of run '
-            f'{self.run_id!r} stops rather than mix the two runs\' messages (give each run its own domain)')
+            f'{what} is on ROS_DOMAIN_ID {self.domain_id}; this node of run {self.run_id!r} stops rather '
+            'than mix the two runs\' messages (give each run its own domain)')
         self.node.context.try_shutdown()
 
 

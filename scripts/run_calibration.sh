@@ -327,7 +327,7 @@ done
 recording_all || fail recorder "did not subscribe to the other nodes' topics within 20 s"
 start selector active_selector selector_node --ros-args --params-file "$config/selector.yaml" \
   -p "strategy:=$strategy" -p "iterations:=$iterations" -p "seed:=$seed" -p "noise_model:=$noise" \
-  -p "progress_file:=$output/progress.jsonl" "${resume_args[@]}"
+  -p "progress_file:=$output/progress.jsonl" -p "wait_for_recorder:=true" "${resume_args[@]}"
 
 # --- Wait for the selector; a node that dies fails the run ----------------------------------
 shown=0

@@ -28,8 +28,8 @@ Publications
 Parameters
 ----------
 Declared from the settings dataclasses of :mod:`active_selector.node_settings` (one default, one
-description and one range each): robot, eye, progress_file, resume, wait_report_period
-(SelectorNodeSettings); strategy ('random' | 'al' | 'ucsal' | 'ccsal'), seed, gamma, delta,
+description and one range each): robot, eye, progress_file, wait_for_recorder, resume,
+wait_report_period (SelectorNodeSettings); strategy ('random' | 'al' | 'ucsal' | 'ccsal'), seed, gamma, delta,
 optimizer, algorithm, max_evals, n_candidates, refine_starts, refine_evals, local_algorithm,
 repeat_tolerance (StrategySettings); penalty_a, penalty_b, occlusion_length_scale,
 occlusion_a0, occlusion_b0, occlusion_prior ('flat' | 'geometric'), occlusion_mode ('paper' |
@@ -53,6 +53,7 @@ from builtin_interfaces.msg import Duration
 from diagnostic_msgs.msg import DiagnosticStatus
 from geometry_msgs.msg import PoseArray, PoseStamped
 from rclpy.clock import Clock, ClockType
+from rclpy.duration import Duration as RclpyDuration
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, String
@@ -189,6 +190,8 @@ class SelectorNode(Node):
                 missing.append('/body_schema/covariance')
             if self.camera_pose is None:
                 missing.append(f'/camera/{self.settings.eye}/pose')
+        if self.settings.wait_for_recorder and self.pub_progress.get_subscription_count() == 0:
+            missing.append('a subscriber of /calibration/progress (the recorder)')
         return missing
 
     def now(self) -> float:
@@ -283,9 +286,20 @@ class SelectorNode(Node):
                                    f'{self.planner.discarded} discarded')
 
 
+#: Seconds the selector waits, once done, for its last records to be acknowledged.
+FLUSH_TIMEOUT_S = 5.0
+
+
 def _run_until_done(node: SelectorNode) -> None:
     while rclpy.ok() and not node.done:
         rclpy.spin_once(node, timeout_sec=0.1)
+    if node.done:
+        # The process ends next: a reliable record not yet acknowledged would die with it (the
+        # recorder lost the last iteration's progress record that way in runs on a loaded machine).
+        for pub in (node.pub_progress, node.pub_cmd):
+            if not pub.wait_for_all_acked(RclpyDuration(seconds=FLUSH_TIMEOUT_S)):
+                node.get_logger().warning(f'{pub.topic_name}: not every subscriber acknowledged the last '
+                                          f'message within {FLUSH_TIMEOUT_S} s')
 
 
 def main(args: list[str] | None = None) -> None:

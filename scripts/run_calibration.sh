@@ -214,17 +214,17 @@ take_domain() { # take_domain N: lock domain N for this run
   exec {domain_fd}>"$lock_dir/$1.lock"
   flock -n "$domain_fd" || { exec {domain_fd}>&-; return 1; }
 }
-quiet_domain() { python3 -m calibration_bringup.graph_probe --domain-id "$1"; }   # no graph talks on it
+quiet_domain() { python3 -m calibration_bringup.graph_probe --domain-id "$1" --seconds "$2"; }   # no graph talks on it
 if [ -n "$domain_id" ]; then
   take_domain "$domain_id" || die "ROS_DOMAIN_ID $domain_id is used by another run_calibration run; choose another --domain-id or leave it out"
-  quiet_domain "$domain_id" || \
+  quiet_domain "$domain_id" 4 || \
     die "ROS_DOMAIN_ID $domain_id already has a ROS graph talking on it (see above); choose another --domain-id or leave it out"
 else
   first=$((RANDOM % 100))
   for ((k = 0; k < 100; k++)); do
     candidate=$((100 + (first + k) % 100))
     take_domain "$candidate" || continue
-    if quiet_domain "$candidate" 2>/dev/null; then domain_id=$candidate; break; fi
+    if quiet_domain "$candidate" 2.5 2>/dev/null; then domain_id=$candidate; break; fi
     echo "run_calibration: ROS_DOMAIN_ID $candidate has a graph not started by this script; trying another" >&2
     exec {domain_fd}>&-
   done

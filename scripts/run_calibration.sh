@@ -246,8 +246,8 @@ if [ -n "$resume" ]; then
   [ -f "$output/checkpoint.npz" ] || echo "run_calibration: $output has no estimator checkpoint; the estimate starts over" >&2
   for ((k = 1; ; k++)); do [ -e "$output/run.$k.mcap" ] || break; done
   bag="$output/run.$k.mcap"
-  mkdir -p "$output/logs/run.$k"
-  for f in "$output"/logs/*.log; do [ -e "$f" ] && mv "$f" "$output/logs/run.$k/"; done   # the interrupted part's logs
+  mkdir -p "$output/logs/before.run.$k"    # the interrupted part's logs
+  for f in "$output"/logs/*.log; do [ -e "$f" ] && mv "$f" "$output/logs/before.run.$k/"; done
   resume_args=(-p "resume:=true")
 else
   bag="$output/calibration.mcap"
@@ -261,8 +261,8 @@ printf 'run_id=%q\ndomain_id=%q\n' "$run_id" "$domain_id" >"$output/run.ids"   #
 
 start() {   # start NAME PKG EXE ARGS...: its own process group, so a stop reaches ros2 run's child too
   local name=$1 pkg=$2 exe=$3; shift 3
-  # A background job of a script starts with SIGINT ignored; until rclpy installs its handler
-  # (imports take 1-2 s) the node would lose a SIGINT, so the default is restored first.
+  # A background job of a script starts with SIGINT ignored; a node still importing (1-4 s on a
+  # loaded machine) lost a SIGINT for good that way, so the default disposition is restored first.
   # shellcheck disable=SC2046  # the command line is words on purpose (ros2 run pkg exe)
   ( trap - INT QUIT; exec setsid $(command_of "$pkg" "$exe") "$@" -p "run_id:=$run_id" \
       >"$output/logs/$name.log" 2>&1 ) &

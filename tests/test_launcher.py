@@ -104,7 +104,9 @@ def test_sigint_right_after_the_nodes_start_stops_the_whole_graph_within_seconds
     for k, delay in enumerate((0.2, 0.8, 2.0)):
         out = tmp_path / f'run{k}'
         launcher = _start(out, '--iterations', '2', *FAST)
-        _wait_for(lambda: (out / 'logs' / 'estimator.log').exists(), 60, 'the estimator to start')
+        _wait_for(lambda: (out / 'logs' / 'estimator.log').exists() or launcher.poll() is not None, 60,
+                  'the estimator to start')
+        assert launcher.poll() is None, launcher.communicate()
         time.sleep(delay)                     # the moment of the Ctrl-C is the point of the test
         run_id = _run_id(out)
         t0 = time.monotonic()

@@ -10,8 +10,10 @@ usage() {
   cat <<'EOF'
 Usage: scripts/run_calibration.sh [options]
 
-Runs one online calibration of the simulated iCub right arm and records it to MCAP.
+Runs one online calibration of a simulated arm (the iCub right arm by default) and records it to MCAP.
 
+  --robot R         robot description: a packaged name (icub_right_arm, ur5e) or a YAML path,
+                    passed to every node's robot parameter             (default: icub_right_arm)
   --strategy S      random | al | ucsal | ccsal                         (default: al)
   --iterations N    measurement attempts (selector iterations)          (default: 50)
   --seed S          seed of the real robot, the initial guess and the selector (default: 1)
@@ -25,7 +27,7 @@ Runs one online calibration of the simulated iCub right arm and records it to MC
                     (joint.a|d [m] or joint.alpha|offset [deg], signed increments)
   --body-change-at N  the iteration at whose command the body changes (default: half the iterations)
   --rtf F           simulated seconds per wall second; 0 = as fast as possible (default: 1.0)
-  --image-size WxH  camera resolution, intrinsics scale with it         (default: 320x240)
+  --image-size WxH  camera resolution, intrinsics scale with it         (default: the description's camera)
   --no-images       do not record the camera images (smaller bag)
   --domain-id N     ROS_DOMAIN_ID 0-232; refused if another run holds it or a graph talks on it
                     (default: a free one in 100-199; discovery is localhost-only)
@@ -52,17 +54,18 @@ need_value() {  # need_value FLAG ARGS...: the flag's value is the next word, no
 }
 is_number() { [[ "$1" =~ ^[0-9]*\.?[0-9]+$ ]]; }
 
-strategy=al; iterations=50; seed=1; output=results/run; noise=pose_dependent; rtf=1.0; estimator=map
+robot=icub_right_arm; strategy=al; iterations=50; seed=1; output=results/run; noise=pose_dependent; rtf=1.0; estimator=map
 body_change=""; body_change_at=""; overwrite=0; resume=""
-image_size=320x240; record_images=1; domain_id=""; timeout=""; viz=0; viz_port=8080
+image_size=""; record_images=1; domain_id=""; timeout=""; viz=0; viz_port=8080
 max_timeouts=0.2; max_disagreement=0.5
 given=()   # run-defining options on the command line (a resumed run keeps its own)
 while [ $# -gt 0 ]; do
   case "$1" in
-    --strategy|--iterations|--seed|--noise|--estimator|--body-change|--body-change-at|--image-size)
+    --robot|--strategy|--iterations|--seed|--noise|--estimator|--body-change|--body-change-at|--image-size)
       need_value "$@"; given+=("$1") ;;&
     --output|--resume|--rtf|--domain-id|--timeout|--viz-port|--max-timeouts|--max-disagreement)
       need_value "$@" ;;&
+    --robot) robot=$2; shift 2 ;;
     --strategy) strategy=$2; shift 2 ;;
     --iterations) iterations=$2; shift 2 ;;
     --seed) seed=$2; shift 2 ;;
@@ -101,9 +104,14 @@ case "$noise" in pose_dependent|constant) ;; *) die "--noise must be pose_depend
 case "$estimator" in map|ekf) ;; *) die "--estimator must be map or ekf, got '$estimator'" ;; esac
 [[ "$iterations" =~ ^[1-9][0-9]*$ ]] || die "--iterations must be a positive integer, got '$iterations'"
 [[ "$seed" =~ ^[0-9]+$ ]] || die "--seed must be a non-negative integer, got '$seed'"
-[[ "$image_size" =~ ^([1-9][0-9]*)x([1-9][0-9]*)$ ]] || \
-  die "--image-size must look like 640x480 (positive sizes), got '$image_size'"
-width=${BASH_REMATCH[1]}; height=${BASH_REMATCH[2]}
+[[ -n "$robot" ]] || die "--robot must name a robot description"
+size_args=(); size_text="the description's image size"
+if [ -n "$image_size" ]; then
+  [[ "$image_size" =~ ^([1-9][0-9]*)x([1-9][0-9]*)$ ]] || \
+    die "--image-size must look like 640x480 (positive sizes), got '$image_size'"
+  size_args=(-p "image_width:=${BASH_REMATCH[1]}" -p "image_height:=${BASH_REMATCH[2]}")
+  size_text=$image_size
+fi
 is_number "$rtf" || die "--rtf must be a non-negative number, got '$rtf'"
 [[ "$rtf" == *.* ]] || rtf="$rtf.0"   # a double parameter: '4' would be declared an integer and refused
 [[ "$viz_port" =~ ^[0-9]+$ ]] && (( viz_port >= 1 && viz_port <= 65535 )) || die "--viz-port must be a port number, got '$viz_port'"
@@ -252,7 +260,7 @@ if [ -n "$resume" ]; then
 else
   bag="$output/calibration.mcap"
   {
-    for var in strategy iterations seed noise estimator body_change body_change_at image_size record_images rtf; do
+    for var in robot strategy iterations seed noise estimator body_change body_change_at image_size record_images rtf; do
       printf '%s=%q\n' "$var" "${!var}"
     done
   } >"$output/run.env"
@@ -281,13 +289,13 @@ all_alive() {   # all_alive NAME...: fail the run on the first one that exited
   done
 }
 
-recorder_args=(-p "output:=$bag")
+recorder_args=(-p "output:=$bag" -p "robot:=$robot")
 sim_args=()       # rcl refuses an empty value (-p body_change:=), so the change is passed only when asked for
 [ -z "$body_change" ] || sim_args=(-p "body_change:=$body_change" -p "body_change_at_command:=$body_change_at")
 [ "$record_images" = 1 ] || recorder_args+=(-p "exclude_images:=true")
 
-echo "run_calibration: $strategy, $iterations iterations, seed $seed, noise $noise, estimator $estimator," \
-     "${width}x${height}, rtf $rtf, ROS_DOMAIN_ID $ROS_DOMAIN_ID, run $run_id -> $output"
+echo "run_calibration: $robot, $strategy, $iterations iterations, seed $seed, noise $noise, estimator $estimator," \
+     "$size_text, rtf $rtf, ROS_DOMAIN_ID $ROS_DOMAIN_ID, run $run_id -> $output"
 [ -z "$resume" ] || echo "run_calibration: resuming the run in $output; this part is recorded to $bag"
 [ -z "$body_change" ] || echo "run_calibration: the real robot changes by '$body_change' at iteration $body_change_at"
 wall0=$SECONDS
@@ -297,15 +305,16 @@ start recorder calibration_bringup recorder_node --ros-args --params-file "$conf
 for ((t = 0; t < 200; t++)); do [ -s "$bag" ] && break; alive recorder || fail recorder "exited at start"; sleep 0.1; done
 [ -s "$bag" ] || fail recorder "did not open $bag within 20 s"
 start sim icub_sim_bridge sim_node --ros-args --params-file "$config/sim.yaml" \
-  -p "perturb_seed:=$seed" -p "real_time_factor:=$rtf" -p "image_width:=$width" -p "image_height:=$height" \
+  -p "robot:=$robot" -p "perturb_seed:=$seed" -p "real_time_factor:=$rtf" "${size_args[@]}" \
   "${sim_args[@]}"
 if [ "$viz" = 1 ]; then   # latched facts (true table, camera poses, estimate) reach it whenever it starts
-  start viz calibration_viz viz_node --ros-args --params-file "$viz_config/viz.yaml" -p "port:=$viz_port"
+  start viz calibration_viz viz_node --ros-args --params-file "$viz_config/viz.yaml" -p "port:=$viz_port" \
+    -p "robot:=$robot"
   echo "run_calibration: live 3D view at http://127.0.0.1:$viz_port (open it in a browser)"
 fi
-start detector marker_detector detector_node --ros-args --params-file "$config/detector.yaml"
+start detector marker_detector detector_node --ros-args --params-file "$config/detector.yaml" -p "robot:=$robot"
 start estimator dh_estimator estimator_node --ros-args --params-file "$config/estimator.yaml" \
-  -p "initial_seed:=$seed" -p "noise_model:=$noise" -p "estimator:=$estimator" \
+  -p "robot:=$robot" -p "initial_seed:=$seed" -p "noise_model:=$noise" -p "estimator:=$estimator" \
   -p "export_dir:=$output/model" -p "checkpoint_path:=$output/checkpoint.npz"
 # The selector last, once the recorder records every topic but the selector's own two (/arm/command,
 # /calibration/progress): nothing moves and the estimator does not update before the first command,
@@ -326,7 +335,7 @@ for ((t = 0; t < 200; t++)); do
 done
 recording_all || fail recorder "did not subscribe to the other nodes' topics within 20 s"
 start selector active_selector selector_node --ros-args --params-file "$config/selector.yaml" \
-  -p "strategy:=$strategy" -p "iterations:=$iterations" -p "seed:=$seed" -p "noise_model:=$noise" \
+  -p "robot:=$robot" -p "strategy:=$strategy" -p "iterations:=$iterations" -p "seed:=$seed" -p "noise_model:=$noise" \
   -p "progress_file:=$output/progress.jsonl" -p "wait_for_recorder:=true" "${resume_args[@]}"
 
 # --- Wait for the selector; a node that dies fails the run ----------------------------------
@@ -356,8 +365,8 @@ echo "run_calibration: finished in ${wall} s; writing the report"
 calibration_cmd=$(command_of calibration_bringup calibration_report)
 # shellcheck disable=SC2086  # the command line is words on purpose (ros2 run pkg exe)
 $calibration_cmd --bag "$bag" --output "$output" --wall-seconds "$wall" \
-  --title "$strategy, $iterations iterations, seed $seed, noise $noise, estimator $estimator, ${width}x${height}" \
-  --params-file "$config/estimator.yaml" --noise-model "$noise" --estimator "$estimator"
+  --title "$robot, $strategy, $iterations iterations, seed $seed, noise $noise, estimator $estimator, $size_text" \
+  --params-file "$config/estimator.yaml" --noise-model "$noise" --estimator "$estimator" --robot "$robot"
 # The run's health: a run with many timeouts (a stalled estimator) or whose offline re-run
 # disagrees with the online estimate is not a result to trust, even if it finished.
 python3 -m calibration_bringup.run_check "$output" --max-timeouts "$max_timeouts" \

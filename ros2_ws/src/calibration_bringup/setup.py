@@ -28,6 +28,7 @@ setup(
             'recorder_node = calibration_bringup.recorder_node:main',
             'bag_player = calibration_bringup.player_node:main',
             'experiment = calibration_bringup.experiment:main',
+            'recover = calibration_bringup.recover:main',
         ],
     },
 )

@@ -23,6 +23,7 @@ setup(
     entry_points={
         'console_scripts': [
             'viz_node = calibration_viz.viz_node:main',
+            'bag_view = calibration_viz.bag_view:main',
         ],
     },
 )

@@ -5,7 +5,10 @@ One iteration (docs/architecture.md, "The loop"): in :attr:`Phase.WAITING` the c
 states (:meth:`~CalibrationLoop.joint_state`) show when the arm has settled at the target
 (:attr:`Phase.AWAITING_OUTCOME`); the first marker frame stamped ``settle_time`` after settling
 (:meth:`~CalibrationLoop.markers`) decides whether the hand was seen (not seen: outcome
-``failed``); if it was, the estimator's verdict for this configuration
+``failed``); a frame the detector could not judge (:meth:`~CalibrationLoop.bad_frame`: bad image
+or camera_info) decides nothing, the loop waits for the next one, and if only such frames come
+before the timeout the iteration ends ``bad_input``, which does not teach the occlusion model;
+if the hand was seen, the estimator's verdict for this configuration
 (:meth:`~CalibrationLoop.estimator_outcome`: ``accepted`` or ``rejected``) ends the iteration.
 :meth:`~CalibrationLoop.tick` ends a stuck one: ``unreachable`` when the target is not reached
 within ``settle_timeout``, ``timeout`` when no outcome follows within ``outcome_timeout``. Every
@@ -137,6 +140,8 @@ class CalibrationLoop:
         self.t_command = 0.0
         self.t_settled = 0.0
         self.detected: bool | None = None
+        self.bad_frames = 0                 # frames after settling the detector could not judge
+        self.bad_reason = ''
         # Recent estimator verdicts (outcome, joints, message): a verdict may come before the frame.
         self._outcomes: deque[tuple[Outcome, NDArray[np.float64], str]] = deque(maxlen=50)
 
@@ -182,6 +187,7 @@ class CalibrationLoop:
         self.phase = Phase.MOVING
         self.t_command = self.clock()
         self.detected = None
+        self.bad_frames, self.bad_reason = 0, ''
         self._check_settled()
         return self.target
 
@@ -198,6 +204,19 @@ class CalibrationLoop:
                 return self._finish(Outcome.FAILED, 'no marker detected after settling')
             return self._match_outcome()
         return None
+
+    def bad_frame(self, t: float, reason: str) -> bool:
+        """A frame stamped ``t`` the detector could not judge (``reason``): not evidence either way.
+
+        Counted (returns True) when it is one the iteration waits for; the next judged frame
+        decides instead.
+        """
+        if self.phase is Phase.AWAITING_OUTCOME and self.detected is None \
+                and t >= self.t_settled + self.settings.settle_time:
+            self.bad_frames += 1
+            self.bad_reason = reason
+            return True
+        return False
 
     def estimator_outcome(self, outcome: Outcome | str, joints: ArrayLike, message: str = '') -> Iteration | None:
         """The estimator's verdict on an observation at configuration ``joints`` (L,) [rad].
@@ -225,6 +244,9 @@ class CalibrationLoop:
             return self._finish(Outcome.UNREACHABLE, f'target not reached within {s.settle_timeout:.1f} s: '
                                 f'{self.planner.model.joint_names[j]} is {np.degrees(err[j]):.2f} deg away')
         if self.phase is Phase.AWAITING_OUTCOME and self.clock() - self.t_settled > s.outcome_timeout:
+            if self.detected is None and self.bad_frames:
+                return self._finish(Outcome.BAD_INPUT, f'{self.bad_frames} frame(s) after settling were bad '
+                                    f'input, none judged (last: {self.bad_reason})')
             why = ('no /markers frame after settling' if self.detected is None
                    else 'markers seen but no estimator update for this configuration')
             return self._finish(Outcome.TIMEOUT, why)
@@ -254,7 +276,7 @@ class CalibrationLoop:
         now = self.clock()
         settled = self.phase is Phase.AWAITING_OUTCOME
         reached = self.reached if settled else self.q.copy()
-        a = self.planner.record(self.target, reached, outcome, bool(self.detected), self.selection_seconds)
+        a = self.planner.record(self.target, reached, outcome, self.detected, self.selection_seconds)
         move_s = (self.t_settled if settled else now) - self.t_command
         outcome_s = now - self.t_settled if settled else 0.0
         record = {'iteration': a.iteration, 'strategy': self.planner.strategy.value, 'outcome': outcome.value,

@@ -71,7 +71,7 @@ class Attempt:
     iteration: int
     target: NDArray[np.float64]
     reached: NDArray[np.float64]
-    outcome: Outcome             # accepted / rejected / failed / unreachable / timeout
+    outcome: Outcome             # accepted / rejected / failed / unreachable / timeout / bad_input
     detected: bool
     movement_deg: float          # accumulated L1 joint movement after this iteration
     selection_seconds: float
@@ -158,9 +158,12 @@ class Planner:
         cost = None if self.strategy is Strategy.RANDOM else self.cost(dh, P, camera_pose)
         return self.selector.select(cost, self.previous, self.visited)
 
-    def record(self, target: ArrayLike, reached: ArrayLike, outcome: Outcome | str, detected: bool,
+    def record(self, target: ArrayLike, reached: ArrayLike, outcome: Outcome | str, detected: bool | None,
                selection_seconds: float) -> Attempt:
         """Account one iteration: occlusion model, movement, history.
+
+        ``detected`` None means no frame was judged at the reached configuration (no frame, or
+        only bad input): the occlusion model learns nothing, as for an unreached target.
 
         Raises
         ------
@@ -171,10 +174,11 @@ class Planner:
         reached = np.asarray(reached, dtype=float)
         prev = self.previous
         self.movement_deg += float(np.degrees(np.sum(np.abs(reached - prev))))
-        if outcome is not Outcome.UNREACHABLE:     # an unreached pose says nothing about visibility
+        # An unreached pose, or one no frame was judged at, says nothing about visibility.
+        if outcome.informs_visibility and detected is not None:
             self.occlusion.add(np.clip(reached, self.model.calibration_box[:, 0], self.model.calibration_box[:, 1]),
                                detected)
         attempt = Attempt(len(self.history) + 1, np.asarray(target, dtype=float), reached, outcome,
-                          detected, self.movement_deg, selection_seconds)
+                          bool(detected), self.movement_deg, selection_seconds)
         self.history.append(attempt)
         return attempt

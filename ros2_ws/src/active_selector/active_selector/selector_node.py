@@ -17,6 +17,10 @@ Subscriptions
 /body_schema/estimate, /body_schema/covariance : std_msgs/Float64MultiArray (transient local)
 /camera/<eye>/pose : geometry_msgs/PoseStamped (transient local)
 /markers : geometry_msgs/PoseArray
+/diagnostics : diagnostic_msgs/DiagnosticArray, the detector's per-frame verdicts (statuses named
+    calibration_interfaces.outcome.DETECTOR_DIAGNOSTIC): a ``bad_input`` frame after settling is
+    not a failed detection; the loop waits for a judged frame and otherwise ends the iteration
+    ``bad_input`` (warned), which the occlusion model ignores
 /body_schema/update_status : diagnostic_msgs/DiagnosticStatus (keys: calibration_interfaces.outcome.StatusKey)
 
 Publications
@@ -50,7 +54,7 @@ from typing import Any
 import numpy as np
 import rclpy
 from builtin_interfaces.msg import Duration
-from diagnostic_msgs.msg import DiagnosticStatus
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseArray, PoseStamped
 from rclpy.clock import Clock, ClockType
 from rclpy.duration import Duration as RclpyDuration
@@ -65,7 +69,9 @@ from calibration_interfaces.messages import (MessageFormatError, joints_in_order
                                              pose_msg_to_matrix, stamp_to_seconds)
 from calibration_interfaces.node_util import WarnOnce, declare_settings, qos_profile, spin_node
 from calibration_interfaces.noise import NoiseSettings, PoseDependentSettings
-from calibration_interfaces.outcome import StatusFormatError, decode_status
+from calibration_interfaces.outcome import (DETECTOR_DIAGNOSTIC, FrameStatus, StatusFormatError, decode_frame,
+                                             decode_status)
+from calibration_interfaces.throttle import KeyedThrottle
 
 from .loop import CalibrationLoop, Iteration, LoopSettings, Phase
 from .node_settings import SelectorNodeSettings, StrategySettings
@@ -104,6 +110,7 @@ class SelectorNode(Node):
         self.camera_pose: np.ndarray | None = None
         self._last_wait_report = 0.0
         self._warn_once = WarnOnce(self)
+        self._throttle = KeyedThrottle(2.0)
 
         camera_pose = f'/camera/{self.settings.eye}/pose'
         self.pub_cmd = self.create_publisher(JointTrajectory, '/arm/command', qos_profile('/arm/command'))
@@ -116,6 +123,7 @@ class SelectorNode(Node):
             self.create_subscription(Float64MultiArray, name, callback, qos_profile(name))
         self.create_subscription(PoseStamped, camera_pose, self.on_camera_pose, qos_profile(camera_pose))
         self.create_subscription(PoseArray, '/markers', self.on_markers, qos_profile('/markers'))
+        self.create_subscription(DiagnosticArray, '/diagnostics', self.on_diagnostics, qos_profile('/diagnostics'))
         self.create_subscription(DiagnosticStatus, '/body_schema/update_status', self.on_status,
                                  qos_profile('/body_schema/update_status'))
         # A steady (wall) timer: reports and timeouts must run even when sim time stands still.
@@ -216,22 +224,41 @@ class SelectorNode(Node):
         try:
             self.dh = msg_to_table(msg, self.model.n_joints)
         except MessageFormatError as exc:
-            self.get_logger().warning(f'/body_schema/estimate ignored: {exc}')
+            self._warn('estimate', f'/body_schema/estimate ignored: {exc}')
 
     def on_covariance(self, msg: Float64MultiArray) -> None:
         try:
             self.P = msg_to_covariance(msg, self.model.n_params)
         except MessageFormatError as exc:
-            self.get_logger().warning(f'/body_schema/covariance ignored: {exc}')
+            self._warn('covariance', f'/body_schema/covariance ignored: {exc}')
 
     def on_camera_pose(self, msg: PoseStamped) -> None:
         try:
             self.camera_pose = pose_msg_to_matrix(msg.pose)
         except ValueError as exc:
-            self.get_logger().warning(f'camera pose ignored: {exc}')
+            self._warn('camera_pose', f'camera pose ignored: {exc}')
 
     def on_markers(self, msg: PoseArray) -> None:
         self._report(self.loop.markers(stamp_to_seconds(msg.header.stamp), len(msg.poses) > 0))
+
+    def on_diagnostics(self, msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            if status.name != DETECTOR_DIAGNOSTIC:
+                continue                              # other nodes' diagnostics
+            try:
+                frame = decode_frame({v.key: v.value for v in status.values})
+            except StatusFormatError as exc:
+                self._warn_once('frame', f'/diagnostics {DETECTOR_DIAGNOSTIC} status ignored: {exc}')
+                continue
+            if frame.status is FrameStatus.BAD_INPUT and self.loop.bad_frame(frame.stamp, status.message):
+                self._warn(f'bad_input.{frame.kind}', f'the attempt frame at {frame.stamp:.3f} s was bad input '
+                           f'({status.message}); not counted as the hand hidden, waiting for the next')
+
+    def _warn(self, key: str, text: str) -> None:
+        """A warning throttled per kind of problem (``key``), not per call site."""
+        out = self._throttle(key, text)
+        if out is not None:
+            self.get_logger().warning(out)
 
     def on_status(self, msg: DiagnosticStatus) -> None:
         try:

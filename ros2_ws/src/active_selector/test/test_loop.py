@@ -7,6 +7,7 @@ from active_selector.loop import CalibrationLoop, LoopSettings, LoopStateError, 
 from active_selector.planner import Planner, PlannerSettings
 from body_schema.acquisition import SelectorConfig
 from body_schema.noise import PoseDependentNoise
+from calibration_interfaces.outcome import Outcome
 
 ARM = body_schema.load_robot()
 START = np.mean(ARM.calibration_box, axis=1)
@@ -135,6 +136,38 @@ def test_no_outcome_in_time_is_a_timeout(loop, frame, reason):
     it = loop.tick()
     assert it.attempt.outcome == 'timeout' and reason in it.reason
     assert it.attempt.detected is bool(frame)
+    # Without a judged frame nothing is known about visibility (main taught a failure here).
+    assert loop.planner.occlusion.n_configs == (0 if frame is None else 1)
+
+
+def test_bad_input_frames_decide_nothing_and_teach_the_occlusion_model_nothing(loop):
+    """On main a bad frame came as an empty /markers: a failed attempt the occlusion model learnt."""
+    target = _command(loop)
+    _settle(loop, target)
+    loop.bad_frame(1.2, 'left: image.encoding: unsupported')
+    assert loop.phase is Phase.AWAITING_OUTCOME and loop.detected is None
+    it = loop.markers(1.3, False)                   # the next judged frame decides
+    assert it.attempt.outcome == 'failed' and loop.planner.occlusion.n_configs == 1
+    target = _command(loop)
+    _settle(loop, target, t=3.0)
+    loop.bad_frame(3.2, 'left: camera_info.D: distortion coefficients must be finite')
+    loop.bad_frame(3.3, 'left: camera_info.D: distortion coefficients must be finite')
+    loop.clock.t = 4.1
+    it = loop.tick()
+    assert it.attempt.outcome == Outcome.BAD_INPUT and not it.attempt.detected
+    assert '2 frame(s)' in it.reason and 'camera_info.D' in it.reason
+    assert loop.planner.occlusion.n_configs == 1    # unchanged: bad input is not a hidden hand
+
+
+def test_a_bad_frame_before_settling_or_after_the_decision_is_ignored(loop):
+    target = _command(loop)
+    loop.bad_frame(0.5, 'early')                    # still moving
+    _settle(loop, target)
+    loop.bad_frame(1.05, 'before settle_time')
+    assert loop.bad_frames == 0
+    loop.markers(1.2, True)
+    loop.bad_frame(1.3, 'after the decision')
+    assert loop.bad_frames == 0
 
 
 def test_the_loop_is_done_after_its_iterations(loop):

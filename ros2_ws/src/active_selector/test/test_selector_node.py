@@ -7,7 +7,7 @@ import json
 
 import numpy as np
 import pytest
-from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Pose, PoseArray, PoseStamped
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
@@ -17,7 +17,7 @@ from trajectory_msgs.msg import JointTrajectory
 import body_schema
 from active_selector.selector_node import Phase, SelectorNode
 from calibration_interfaces.node_util import qos_profile
-from calibration_interfaces.outcome import Outcome, encode_status
+from calibration_interfaces.outcome import DETECTOR_DIAGNOSTIC, FrameStatus, Outcome, encode_frame, encode_status
 
 ARM = body_schema.load_robot()
 
@@ -40,8 +40,10 @@ class Probe:
         self.status = p.create_publisher(DiagnosticStatus, '/body_schema/update_status',
                                          qos_profile('/body_schema/update_status'))
         self.cam = p.create_publisher(PoseStamped, '/camera/left/pose', qos_profile('/camera/left/pose'))
+        self.diagnostics = p.create_publisher(DiagnosticArray, '/diagnostics', qos_profile('/diagnostics'))
         ros.spin_until(lambda: self.js.get_subscription_count() > 0 and self.markers.get_subscription_count() > 0
-                       and self.status.get_subscription_count() > 0, 10.0, 'discovery')
+                       and self.status.get_subscription_count() > 0
+                       and self.diagnostics.get_subscription_count() > 0, 10.0, 'discovery')
 
     def stamp(self, ahead: float = 0.0):
         t = self.node.get_clock().now().nanoseconds + int(ahead * 1e9)
@@ -69,6 +71,16 @@ class Probe:
         msg = PoseArray(poses=[Pose() for _ in range(n_markers)])
         msg.header.stamp = self.stamp(ahead=1.0)          # well after settle_time
         self.markers.publish(msg)
+
+    def bad_frame(self, kind: str) -> None:
+        """What the detector publishes for a frame it cannot judge: no /markers, an ERROR status."""
+        stamp = self.stamp(ahead=1.0)
+        values = encode_frame(FrameStatus.BAD_INPUT, stamp.sec + stamp.nanosec * 1e-9, kind)
+        msg = DiagnosticArray(status=[DiagnosticStatus(
+            level=bytes([FrameStatus.BAD_INPUT.level]), name=DETECTOR_DIAGNOSTIC, message=f'left: {kind}: bad',
+            hardware_id='left', values=[KeyValue(key=k, value=v) for k, v in values.items()])])
+        msg.header.stamp = stamp
+        self.diagnostics.publish(msg)
 
     def verdict(self, outcome: Outcome, q: np.ndarray) -> None:
         kv = encode_status(outcome, 0.0, q, 1.0, 0.001, {'updates': 1, 'rejected': 0, 'duplicates': 0})
@@ -108,6 +120,31 @@ def test_an_empty_frame_after_settling_fails_the_iteration(ros, tmp_path):
     assert json.loads((tmp_path / 'p.jsonl').read_text()) == rec
     assert probe.node.phase is not Phase.DONE                 # one of two iterations
     ros.spin_until(lambda: len(probe.commands) == 2, 5.0, 'the next command')
+
+
+def test_a_bad_input_frame_is_not_a_hidden_hand(ros):
+    """Only bad-input frames after settling: the iteration ends bad_input and the occlusion model
+    records no failure (on main the detector's empty /markers for such a frame, or the timeout
+    that follows silence, taught it the hand was hidden there)."""
+    probe = Probe(ros, strategy='random', iterations=2, seed=3, outcome_timeout=1.0)
+    target = probe.target()
+    probe.settle(target)
+    probe.bad_frame('image.encoding')
+    ros.spin_until(lambda: probe.node.loop.bad_frames >= 1, 5.0, 'the bad frame counted')
+    assert probe.node.phase is Phase.AWAITING_OUTCOME             # waits for a judged frame
+    ros.spin_until(lambda: probe.progress, 10.0, 'the iteration to end')
+    [rec] = probe.progress
+    assert rec['outcome'] == 'bad_input' and 'image.encoding' in rec['reason'], rec
+    assert probe.node.planner.occlusion.n_configs == 0
+    # The next attempt: a bad frame, then an empty judged one, which does fail.
+    ros.spin_until(lambda: (probe.joints(probe.node.q), len(probe.commands) == 2)[1], 5.0, 'the next command')
+    target = np.array(probe.commands[-1].points[-1].positions)
+    probe.settle(target)
+    probe.bad_frame('camera_info.D')
+    ros.spin_until(lambda: probe.node.loop.bad_frames >= 1, 5.0, 'the bad frame counted')
+    probe.frame(0)
+    ros.spin_until(lambda: len(probe.progress) == 2, 5.0, 'the second record')
+    assert probe.progress[1]['outcome'] == 'failed' and probe.node.planner.occlusion.n_configs == 1
 
 
 def test_the_next_target_is_selected_on_the_first_joint_state_after_an_iteration(ros):

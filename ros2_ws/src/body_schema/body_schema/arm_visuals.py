@@ -37,6 +37,12 @@ LINK_RADIUS = {
 }
 
 
+#: Shortest DH length [m] drawn as a cylinder. A length that is zero on the nominal arm and a
+#: millimetre on the real one is not a link: drawn, it is a coin as wide as the link standing
+#: across the joint (on the UR5e's flange, a = 1 mm put a 4 cm disc in front of the marker).
+MIN_SEGMENT = 0.005
+
+
 def segment_visuals(a: float, d: float, radius: float, rgba: tuple, joint_ball: bool = True) -> list[Visual]:
     """Cylinders along the DH link: origin -> (0, 0, d) -> (a, 0, d), in the joint's moving frame.
 
@@ -44,9 +50,9 @@ def segment_visuals(a: float, d: float, radius: float, rgba: tuple, joint_ball: 
     the caller leaves out those hidden in the torso or coinciding with another joint's.
     """
     out = [Visual('sphere', (radius * 1.05,), rgba=GREY)] if joint_ball else []
-    if abs(d) > 1e-4:
+    if abs(d) > MIN_SEGMENT:
         out.append(Visual('cylinder', (radius, abs(d)), xyz_rpy_to_transform([0, 0, d / 2], [0, 0, 0]), rgba))
-    if abs(a) > 1e-4:
+    if abs(a) > MIN_SEGMENT:
         out.append(Visual('cylinder', (radius, abs(a)),
                           xyz_rpy_to_transform([a / 2, 0, d], [0, np.pi / 2, 0]), rgba))
     return out

@@ -33,6 +33,12 @@ model ``x_{k+1} = x_k + w_k``:
 * an optional sliding window: beyond ``window`` observations the oldest is folded into the
   Gaussian prior (linearised at the current solution), bounding the cost of an update.
 
+Parameter combinations the measurements cannot separate (``fixed_directions``, from
+:func:`body_schema.identifiability.analyse`: e.g. the ``d`` of a UR's three parallel joints) are
+held at the initial guess by an explicit prior of standard deviation ``fixed_std`` along each
+direction, a residual block of its own (so a jump or a fold into the prior never loosens it):
+the estimate does not drift along them and its covariance says they were not estimated.
+
 ``x`` is the flattened DH table, row-major ``(a_0, d_0, alpha_0, offset_0, a_1, ...)``; the
 observation is a hand pose compared on SO(3): ``(p_z - p_h, log(R_z R_h^T))``, the residual of
 :class:`body_schema.ekf.HandPoseModel`.
@@ -215,6 +221,10 @@ class MapEstimator:
     settings : MapSettings
     limits : array_like, shape (L, 2), optional
         Joint limits [rad]; observations outside them are refused.
+    fixed_directions : array_like, shape (4 L, k), optional
+        Orthonormal directions the data cannot inform, held at ``x0`` (none by default).
+    fixed_std : float
+        Standard deviation of that prior along each direction [m or rad per unit direction].
 
     Attributes
     ----------
@@ -229,7 +239,8 @@ class MapEstimator:
     """
 
     def __init__(self, base: ArrayLike, x0: ArrayLike, P0: ArrayLike,  # noqa: N803
-                 settings: MapSettings = MapSettings(), limits: ArrayLike | None = None) -> None:
+                 settings: MapSettings = MapSettings(), limits: ArrayLike | None = None,
+                 fixed_directions: ArrayLike | None = None, fixed_std: float = 1e-6) -> None:
         self.base = np.asarray(base, dtype=float)
         x0 = np.array(x0, dtype=float).ravel()
         if x0.size % kinematics.PARAMS_PER_LINK or not np.all(np.isfinite(x0)):
@@ -241,6 +252,16 @@ class MapEstimator:
                 np.max(np.abs(P0 - P0.T)) > 1e-9 * np.max(np.abs(P0)):
             raise InvalidInputError(f'P0 must be a finite symmetric ({self.n}, {self.n}) matrix, got {P0.shape}')
         _inv_chol(P0, 'P0')
+        v = np.zeros((self.n, 0)) if fixed_directions is None else np.array(fixed_directions, dtype=float)
+        if v.ndim != 2 or v.shape[0] != self.n or not np.all(np.isfinite(v)) or \
+                not np.allclose(v.T @ v, np.eye(v.shape[1]), atol=1e-8):
+            raise InvalidInputError(f'fixed_directions must be an orthonormal ({self.n}, k) matrix, got shape {v.shape}')
+        if not (np.isfinite(fixed_std) and fixed_std > 0):
+            raise InvalidInputError(f'fixed_std must be finite and > 0, got {fixed_std}')
+        # Rows of the fixing prior: V^T (x - x0) / std ~ N(0, I).
+        self._fix_rows = v.T / fixed_std
+        self._fix_anchor = x0.copy()
+        self.fixed_directions = v
         self.settings = settings
         self.limits = None if limits is None else np.asarray(limits, dtype=float)
         per_link = np.array([settings.q_length, settings.q_length, settings.q_angle, settings.q_angle])
@@ -437,10 +458,15 @@ class MapEstimator:
         lp = _inv_chol(self.P_p, 'prior covariance')
         base, qs, zs, x_p = self.base, self.qs, self.zs, self.x_p
 
+        # Prior rows first (the fixing prior's below the DH prior's): n + k rows ahead of the observations.
+        anchor = np.concatenate([lp @ x_p, self._fix_rows @ self._fix_anchor])
+        lp = np.vstack([lp, self._fix_rows])
+        m = lp.shape[0]
+
         def fun(x: NDArray[np.float64]) -> NDArray[np.float64]:
             hand = kinematics.chain_frames(base, self.table(x), qs)[:, -1]
             r = np.einsum('nij,nj->ni', w, pose_residuals(zs, hand))
-            return np.concatenate([lp @ (x - x_p), r.ravel()])
+            return np.concatenate([lp @ x - anchor, r.ravel()])
 
         def jac(x: NDArray[np.float64]) -> NDArray[np.float64]:
             J = kinematics.pose_jacobian_from_frames(kinematics.chain_frames(base, self.table(x), qs))  # noqa: N806
@@ -461,12 +487,12 @@ class MapEstimator:
         # robust (IRLS) weight. scipy's robust-scaled Jacobian would also shrink the weight of
         # 1-2 sigma residuals and so overstate the uncertainty.
         jr = jac(res.x)
-        r = res.fun[self.n:].reshape(-1, 6)          # unscaled residuals at the solution
+        r = res.fun[m:].reshape(-1, 6)               # unscaled residuals at the solution
         weights = np.ones_like(r)
         outlier = np.einsum('ni,ni->n', r, r) > self._outlier_bound
         weights[outlier] = _IRLS_WEIGHT[loss]((r[outlier] / s.loss_scale) ** 2)
-        jo = jr[self.n:] * np.sqrt(weights.reshape(-1, 1))
-        info = jr[:self.n].T @ jr[:self.n] + jo.T @ jo
+        jo = jr[m:] * np.sqrt(weights.reshape(-1, 1))
+        info = jr[:m].T @ jr[:m] + jo.T @ jo
         try:
             c = np.linalg.cholesky(info)
         except np.linalg.LinAlgError as exc:

@@ -1,8 +1,14 @@
 """Robot descriptions: load, validate, and evaluate the arm (and the eyes that watch it).
 
-A description is a YAML file (see ``robots/icub_right_arm.yaml``). :func:`load_robot` accepts a
-packaged name (``"icub_right_arm"``) or a path, validates every field, and returns an
-:class:`ArmModel`. Angles in the file are in the unit named by ``angle_unit`` (``deg`` or
+A description is a YAML file (see ``robots/icub_right_arm.yaml``, ``robots/ur5e.yaml``).
+:func:`load_robot` accepts a packaged name (``"icub_right_arm"``) or a path, validates every
+field, and returns an :class:`ArmModel`.
+
+The cameras that watch the arm are data too: an eye chain carried by a (still) head
+(``eyes``: the iCub looking at its own hand) and/or cameras fixed in the root frame
+(``fixed_cameras``: a camera on a tripod watching an industrial arm, eye-to-hand).
+:meth:`ArmModel.camera_pose` returns the optical frame of either kind by name, so nodes never
+ask which kind a robot has. Angles in the file are in the unit named by ``angle_unit`` (``deg`` or
 ``rad``); everything in memory is SI (metres, radians).
 """
 from __future__ import annotations
@@ -25,6 +31,7 @@ __all__ = [
     'CameraIntrinsics',
     'MarkerPlacement',
     'EyeChain',
+    'SceneryBox',
     'ArmModel',
     'load_robot',
     'robot_path',
@@ -91,6 +98,24 @@ class EyeChain:
 
 
 @dataclass(frozen=True)
+class SceneryBox:
+    """A static box drawn around the arm for context (a torso, a pedestal), in the root frame.
+
+    Attributes
+    ----------
+    size : tuple of 3 floats
+        Full extents [m].
+    xyz : tuple of 3 floats
+        Centre in the root frame [m] (axis-aligned).
+    rgba : tuple of 4 floats
+    """
+
+    size: tuple[float, float, float]
+    xyz: tuple[float, float, float]
+    rgba: tuple[float, float, float, float]
+
+
+@dataclass(frozen=True)
 class ArmModel:
     """A serial arm described by a standard DH table.
 
@@ -106,6 +131,14 @@ class ArmModel:
         Joint limits [rad].
     calibration_box : ndarray, shape (L, 2)
         The joint box searched during calibration [rad], inside ``limits``.
+    eyes : EyeChain or None
+        Cameras carried by a head (their pose depends on the head joints).
+    fixed_cameras : dict of str to ndarray (4, 4)
+        Cameras fixed in the root frame: name -> optical frame (z forward, x right, y down).
+    camera : CameraIntrinsics or None
+        Intrinsics shared by every camera.
+    scenery : tuple of SceneryBox
+        Static context the simulator draws (no effect on the kinematics).
     """
 
     name: str
@@ -120,6 +153,8 @@ class ArmModel:
     marker_dictionary: str = 'DICT_4X4_50'
     marker_side_length: float = 0.03
     markers: tuple[MarkerPlacement, ...] = ()
+    fixed_cameras: dict[str, NDArray[np.float64]] = field(default_factory=dict, compare=False)
+    scenery: tuple[SceneryBox, ...] = ()
     extra: dict[str, Any] = field(default_factory=dict, compare=False, repr=False)
 
     @property
@@ -148,10 +183,23 @@ class ArmModel:
         """Pose Jacobian w.r.t. the joints: (6, L) or (N, 6, L)."""
         return kinematics.pose_jacobian_joints(self.base, self.dh, q)
 
+    @property
+    def camera_names(self) -> tuple[str, ...]:
+        """Every camera of the description: the fixed ones, then the eyes."""
+        eyes = tuple(self.eyes.links) if self.eyes is not None else ()
+        return tuple(self.fixed_cameras) + eyes
+
     def camera_pose(self, eye: str = 'left', head: ArrayLike | None = None) -> NDArray[np.float64]:
-        """Optical frame of an eye in the root frame, (4, 4)."""
-        if self.eyes is None:
-            raise RobotDescriptionError(f'robot {self.name!r} has no eyes section')
+        """Optical frame of camera ``eye`` in the root frame, (4, 4).
+
+        A fixed camera's pose is the description's (``head`` does not move it); an eye's follows
+        the head joints ``head`` (default: the description's ``head_pose``).
+        """
+        if eye in self.fixed_cameras:
+            return self.fixed_cameras[eye].copy()
+        if self.eyes is None or eye not in self.eyes.links:
+            raise RobotDescriptionError(f'robot {self.name!r} has no camera {eye!r}; '
+                                        f'cameras: {list(self.camera_names)}')
         return self.eyes.camera_pose(eye, head)
 
     def within_limits(self, q: ArrayLike, tol: float = 1e-9) -> NDArray[np.bool_]:
@@ -295,6 +343,12 @@ def robot_from_dict(data: dict[str, Any], source: str = '<dict>') -> ArmModel:
                                     f'interval inside the joint limits')
 
     eyes = _eyes(data['eyes'], h0, where + 'eyes.', scale) if 'eyes' in data else None
+    fixed = _fixed_cameras(data['fixed_cameras'], where + 'fixed_cameras', scale) \
+        if 'fixed_cameras' in data else {}
+    if eyes is not None and set(fixed) & set(eyes.links):
+        raise RobotDescriptionError(f'{where}fixed_cameras: names {sorted(set(fixed) & set(eyes.links))} '
+                                    f'are eyes already')
+    scenery = _scenery(data['scenery'], where + 'scenery') if 'scenery' in data else ()
     camera = None
     if 'camera' in data:
         c = data['camera']
@@ -311,7 +365,7 @@ def robot_from_dict(data: dict[str, Any], source: str = '<dict>') -> ArmModel:
         dictionary, side, markers = _markers(data['hand_markers'], where + 'hand_markers.', scale)
 
     known = {'name', 'root_frame', 'angle_unit', 'H0', 'torso', 'joints', 'calibration_box',
-             'eyes', 'camera', 'hand_markers'}
+             'eyes', 'camera', 'hand_markers', 'fixed_cameras', 'scenery'}
     return ArmModel(
         name=str(data.get('name', Path(source).stem)),
         joint_names=tuple(names),
@@ -325,6 +379,8 @@ def robot_from_dict(data: dict[str, Any], source: str = '<dict>') -> ArmModel:
         marker_dictionary=dictionary,
         marker_side_length=side,
         markers=markers,
+        fixed_cameras=fixed,
+        scenery=scenery,
         extra={k: v for k, v in data.items() if k not in known},
     )
 
@@ -341,6 +397,43 @@ def _eyes(e: Any, h0: NDArray[np.float64], where: str, scale: float) -> EyeChain
         raise RobotDescriptionError(f'{where}: needs a left and/or right eye chain')
     head = _array(e, 'head_pose', (len(heads),), where) * scale
     return EyeChain(base=_fixed_chain(h0, torso), links=links, head_joints=heads, head_pose=head)
+
+
+def _pose(entry: Any, where: str, scale: float) -> NDArray[np.float64]:
+    """``{xyz, rpy}`` (rpy: extrinsic x-y-z, the file's angle unit) -> (4, 4)."""
+    if not isinstance(entry, dict):
+        raise RobotDescriptionError(f'{where}: must be a mapping with xyz and rpy')
+    t = np.eye(4)
+    t[:3, :3] = Rotation.from_euler('xyz', _array(entry, 'rpy', (3,), where + '.') * scale).as_matrix()
+    t[:3, 3] = _array(entry, 'xyz', (3,), where + '.')
+    return t
+
+
+def _fixed_cameras(c: Any, where: str, scale: float) -> dict[str, NDArray[np.float64]]:
+    if not isinstance(c, list) or not c:
+        raise RobotDescriptionError(f'{where}: must be a non-empty list of {{name, xyz, rpy}}')
+    out: dict[str, NDArray[np.float64]] = {}
+    for i, entry in enumerate(c):
+        name = str(entry.get('name', '')) if isinstance(entry, dict) else ''
+        if not name or name in out:
+            raise RobotDescriptionError(f'{where}[{i}].name: must be a unique non-empty name, got {name!r}')
+        out[name] = _pose(entry, f'{where}[{i}]', scale)
+    return out
+
+
+def _scenery(boxes: Any, where: str) -> tuple[SceneryBox, ...]:
+    if not isinstance(boxes, list):
+        raise RobotDescriptionError(f'{where}: must be a list of {{size, xyz, rgba}}')
+    out = []
+    for i, b in enumerate(boxes):
+        w = f'{where}[{i}].'
+        if not isinstance(b, dict):
+            raise RobotDescriptionError(f'{w[:-1]}: must be a mapping with size, xyz, rgba')
+        size, xyz, rgba = _array(b, 'size', (3,), w), _array(b, 'xyz', (3,), w), _array(b, 'rgba', (4,), w)
+        if np.any(size <= 0) or np.any((rgba < 0) | (rgba > 1)):
+            raise RobotDescriptionError(f'{w}: sizes must be > 0 and colours in [0, 1], got {b!r}')
+        out.append(SceneryBox(tuple(size.tolist()), tuple(xyz.tolist()), tuple(rgba.tolist())))
+    return tuple(out)
 
 
 def _markers(m: Any, where: str, scale: float) -> tuple[str, float, tuple[MarkerPlacement, ...]]:

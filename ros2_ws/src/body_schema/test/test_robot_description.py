@@ -6,7 +6,7 @@ import pytest
 import yaml
 
 import body_schema
-from body_schema.robot import RobotDescriptionError, robot_path
+from body_schema.robot import RobotDescriptionError, load_robot, robot_from_dict, robot_path
 
 
 @pytest.fixture(scope='module')
@@ -60,3 +60,34 @@ def test_bad_descriptions_name_the_field(tmp_path, raw, mutate, message):
 def test_unknown_packaged_robot():
     with pytest.raises(FileNotFoundError, match='icub_right_arm'):
         body_schema.load_robot('no_such_robot')
+
+
+def test_ur5e_has_a_fixed_camera_and_the_published_dh_table():
+    ur = load_robot('ur5e')
+    np.testing.assert_allclose(ur.dh[:, 0], [0, -0.425, -0.3922, 0, 0, 0])
+    np.testing.assert_allclose(ur.dh[:, 1], [0.1625, 0, 0, 0.1333, 0.0997, 0.0996])
+    np.testing.assert_allclose(ur.dh[:, 2], np.pi / 2 * np.array([1, 0, 0, 1, -1, 0]), atol=1e-12)
+    assert ur.camera_names == ('left',) and ur.eyes is None
+    cam = ur.camera_pose('left')
+    np.testing.assert_allclose(cam[:3, 3], [-1.7, -0.13, 0.5])
+    np.testing.assert_allclose(cam[:3, 2], [1.0, 0.0, 0.0], atol=1e-12)       # looks along +x at the arm
+    np.testing.assert_allclose(ur.camera_pose('left', np.zeros(5)), cam)    # no head moves it
+    assert (ur.camera.width, ur.camera.height, ur.camera.fx) == (1280, 1024, 1200.0)
+    with pytest.raises(RobotDescriptionError, match="no camera 'right'"):
+        ur.camera_pose('right')
+
+
+def test_icub_cameras_are_its_eyes_and_its_torso_is_scenery():
+    icub = load_robot('icub_right_arm')
+    assert icub.camera_names == ('left', 'right') and not icub.fixed_cameras
+    assert [b.size for b in icub.scenery] == [(0.12, 0.15, 0.32), (0.10, 0.24, 0.08)]
+
+
+def test_fixed_camera_entries_are_validated():
+    doc = yaml.safe_load(robot_path('ur5e').read_text())
+    doc['fixed_cameras'] = [{'name': 'left', 'xyz': [0, 0], 'rpy': [0, 0, 0]}]
+    with pytest.raises(RobotDescriptionError, match=r'fixed_cameras\[0\]\.xyz: expected shape'):
+        robot_from_dict(doc)
+    doc['fixed_cameras'] = [{'name': 'a', 'xyz': [0, 0, 0], 'rpy': [0, 0, 0]}] * 2
+    with pytest.raises(RobotDescriptionError, match='unique non-empty name'):
+        robot_from_dict(doc)

@@ -8,6 +8,8 @@ then not replayed, so that there is one time source. To replay a simulation in i
 set ``publish_clock:=false``: the recorded ``/clock`` is then played like any topic.
 
 The node finishes (``done``; ``main`` returns) when the bag ends, unless ``loop``.
+A bag cut short by a crash is played up to its last complete record, with a warning that says
+what was lost; an empty, missing or non-MCAP file ends ``main`` with one line and exit status 1.
 
 Publications
 ------------
@@ -111,11 +113,10 @@ class BagPlayerNode(Node):
         s = self.settings = declare_settings(self, PlayerSettings)
         path = s.bag
         if not path:
-            raise ValueError("parameter 'bag' is empty: give the .mcap file to play")
+            raise mcap_reader.BagError("parameter 'bag' is empty: give the .mcap file to play")
         self.summary = mcap_reader.summary(path)
         if not self.summary.complete:
-            self.get_logger().warning(f'{path} was not finished ({self.summary.damage}); playing its '
-                                      f'{self.summary.message_count} complete messages in file order')
+            self.get_logger().warning(f'{self.summary.loss}; playing them in file order')
         self._rate = s.rate
         self._loop = s.loop
         self._publish_clock = s.publish_clock
@@ -283,7 +284,11 @@ def _play(node: BagPlayerNode) -> None:
 
 
 def main(args: list[str] | None = None) -> None:
-    spin_node(BagPlayerNode, args, _play)
+    try:
+        spin_node(BagPlayerNode, args, _play)
+    except (FileNotFoundError, mcap_reader.BagError) as exc:   # a bag it cannot open: one line, no traceback
+        print(f'bag_player: {exc}', file=sys.stderr)
+        sys.exit(1)
 
 
 if __name__ == '__main__':

@@ -3,7 +3,10 @@
 Re-runs the filter on the bag with :func:`dh_estimator.evaluate.evaluate_bag` (the online
 estimate is scored alongside), then writes ``metrics.csv``, ``error_vs_iteration.png``,
 ``error_vs_movement.png`` and ``report.md`` (settings, summary, what is in the bag, how to open
-it) and prints the summary. ``scripts/run_calibration.sh`` calls it after every run.
+it) and prints the summary. ``scripts/run_calibration.sh`` calls it after every run. A bag cut
+short by a crash is read up to its last complete record; the console and ``report.md`` say how many
+messages were recovered and what was lost. An empty, missing or non-MCAP bag is one line on
+stderr and exit status 1.
 
 Usage::
 
@@ -49,8 +52,11 @@ def render_report(ev: Evaluation, bag: Path, title: str, wall_seconds: float | N
     lines = [f'# Calibration run: {title}', '',
              f'Bag: `{bag.name}`' + (f'; wall time {wall_seconds:.0f} s '
                                      f'({wall_seconds / max(last.iteration, 1):.2f} s per iteration)'
-                                     if wall_seconds else ''), '',
-             '## Summary', '', '```', summary_text(ev), '```', '',
+                                     if wall_seconds else ''), '']
+    if ev.bag is not None and ev.bag.loss:
+        lines += [f'**{ev.bag.loss}.** The numbers below are from the recovered part; '
+                  f'`recover {bag.name}` writes a complete copy that every bag tool opens.', '']
+    lines += ['## Summary', '', '```', summary_text(ev), '```', '',
              '| | initial | final (offline re-run) | final (online) |', '|---|---|---|---|',
              f'| average position error [mm] | {ev.rows[0].position_mm:.2f} | {last.position_mm:.2f} | '
              f'{last.online_position_mm:.2f} |',
@@ -94,6 +100,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                     help="the estimator's noise_model during the run, if the launcher overrode the file's")
     ap.add_argument('--estimator', choices=list(ESTIMATORS),
                     help="the estimator during the run, if the launcher overrode the file's")
+    ap.add_argument('--robot', help="the run's robot description (packaged name or YAML path), if the launcher "
+                                    "overrode the file's")
     args = ap.parse_args(argv)
     out = args.output or args.bag.parent
     try:
@@ -102,6 +110,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             values['noise_model'] = args.noise_model
         if args.estimator is not None:
             values['estimator'] = args.estimator
+        if args.robot is not None:
+            values['robot'] = args.robot
         ev = evaluate_bag(args.bag, EvaluationSettings.from_parameters(values))
         write_csv(ev.rows, out / 'metrics.csv')
         plot_rows(ev.rows, out, title=args.title)

@@ -24,6 +24,7 @@ from body_schema.noise import NOISE_MODELS
 
 #: Launch arguments: name -> (default, description).
 ARGUMENTS: dict[str, tuple[str, str]] = {
+    'robot': ('icub_right_arm', 'robot description: a packaged name (icub_right_arm, ur5e) or a YAML path'),
     'strategy': ('al', 'random | al | ucsal | ccsal'),
     'iterations': ('50', 'measurement attempts (selector iterations)'),
     'seed': ('1', 'seed of the real robot, the initial guess and the selector'),
@@ -34,6 +35,7 @@ ARGUMENTS: dict[str, tuple[str, str]] = {
     'rtf': ('1.0', 'simulated seconds per wall second; 0 = as fast as possible'),
     'record_images': ('true', 'record the camera images (false: smaller bag)'),
     'output': ('results/run', 'directory of the bag, the model export and progress.jsonl'),
+    'viz': ('false', 'true: also serve the live 3D view (calibration_viz) at http://127.0.0.1:8080'),
 }
 
 
@@ -44,7 +46,8 @@ def node_specs(args: dict[str, str]) -> list[dict[str, Any]]:
     -------
     list of dict
         In start order, each with ``name``, ``package``, ``executable``, ``params_file`` (in the
-        package's config directory) and ``parameters`` (overrides, typed).
+        config directory of ``config_package``, default ``calibration_bringup``) and ``parameters``
+        (overrides, typed).
     """
     out = os.path.abspath(args['output'])
     noise = args['noise']
@@ -53,7 +56,12 @@ def node_specs(args: dict[str, str]) -> list[dict[str, Any]]:
     seed = int(args['seed'])
     if args['estimator'] not in ('map', 'ekf'):
         raise ValueError(f"estimator must be 'map' or 'ekf', got {args['estimator']!r}")
-    return [
+    if args['viz'].lower() not in ('true', 'false'):
+        raise ValueError(f"viz must be 'true' or 'false', got {args['viz']!r}")
+    # The view's parameter file is its own package's (as run_calibration.sh --viz uses it).
+    viz = [{'name': 'viz', 'package': 'calibration_viz', 'executable': 'viz_node', 'params_file': 'viz.yaml',
+            'config_package': 'calibration_viz', 'parameters': {}}] if args['viz'].lower() == 'true' else []
+    specs = [
         # The recorder first, so every latched fact (true table, initial estimate, camera poses) is in the bag.
         {'name': 'recorder', 'package': 'calibration_bringup', 'executable': 'recorder_node',
          'params_file': 'recorder.yaml',
@@ -72,7 +80,12 @@ def node_specs(args: dict[str, str]) -> list[dict[str, Any]]:
          'params_file': 'selector.yaml',
          'parameters': {'strategy': args['strategy'], 'iterations': int(args['iterations']), 'seed': seed,
                         'noise_model': noise, 'progress_file': os.path.join(out, 'progress.jsonl')}},
+        *viz,
     ]
+    # Every node reads the same description (as run_calibration.sh --robot passes it to each).
+    for spec in specs:
+        spec['parameters'] = {'robot': args['robot'], **spec['parameters']}
+    return specs
 
 
 def generate_launch_description() -> Any:
@@ -86,14 +99,18 @@ def generate_launch_description() -> Any:
     from launch.substitutions import EnvironmentVariable
     from launch_ros.actions import Node
 
-    config = os.path.join(get_package_share_directory('calibration_bringup'), 'config')
+    def config_dir(package: str) -> str:
+        return os.path.join(get_package_share_directory(package), 'config')
+
+    config = config_dir('calibration_bringup')
 
     def nodes(context: Any) -> list[Any]:
         values = {k: context.launch_configurations[k] for k in ARGUMENTS}
         actions, selector = [], None
         for spec in node_specs(values):
             node = Node(package=spec['package'], executable=spec['executable'], output='screen',
-                        parameters=[os.path.join(config, spec['params_file']), spec['parameters']])
+                        parameters=[os.path.join(config_dir(spec.get('config_package', 'calibration_bringup')),
+                                                 spec['params_file']), spec['parameters']])
             actions.append(node)
             if spec['name'] == 'selector':
                 selector = node

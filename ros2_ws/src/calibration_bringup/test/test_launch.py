@@ -61,9 +61,18 @@ def test_it_starts_the_nodes_run_calibration_starts_with_existing_parameter_file
     assert specs[0]['executable'] == 'recorder_node', 'the recorder starts first'
 
 
+def test_viz_adds_the_live_view_with_its_own_parameter_file(tmp_path: Path) -> None:
+    (viz,) = [s for s in _specs(tmp_path, viz='true') if s not in _specs(tmp_path)]
+    assert (viz['package'], viz['executable']) == ('calibration_viz', 'viz_node')
+    assert (Path(get_package_share_directory(viz['config_package'])) / 'config' / viz['params_file']).is_file()
+    _node_class(viz['package'], viz['executable'])
+    with pytest.raises(ValueError, match='yes'):
+        _specs(tmp_path, viz='yes')
+
+
 def test_every_override_is_declared_by_its_node(ros, tmp_path: Path) -> None:
     """A misspelt parameter would be silently ignored by a launched node."""
-    for s in _specs(tmp_path, noise='constant'):
+    for s in _specs(tmp_path, noise='constant', robot='ur5e', viz='true'):
         cls = _node_class(s['package'], s['executable'])
         overrides = [Parameter(k, value=v) for k, v in s['parameters'].items()]
         node = ros.add(cls(context=ros.context, parameter_overrides=overrides))

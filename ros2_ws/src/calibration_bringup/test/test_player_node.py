@@ -148,3 +148,16 @@ def test_console_script_plays_to_the_end_and_exits(tmp_path: Path) -> None:
                          timeout=30, check=False)
     assert out.returncode == 0, out.stderr
     assert '3 messages published' in out.stderr
+
+
+@pytest.mark.parametrize('content, says', [(b'', 'is empty'), (b'not a bag at all', 'is not an MCAP file')])
+def test_console_script_refuses_an_empty_or_foreign_file_in_one_line(tmp_path: Path, content: bytes,
+                                                                      says: str) -> None:
+    # On main both printed a raw traceback (EndOfFile, InvalidMagic).
+    path = tmp_path / 'x.mcap'
+    path.write_bytes(content)
+    exe = Path(sys.executable).parent / 'bag_player'
+    out = subprocess.run([str(exe), '--ros-args', '-p', f'bag:={path}'], capture_output=True, text=True,
+                         timeout=30, check=False)
+    assert out.returncode == 1
+    assert out.stderr.startswith(f'bag_player: {path} {says}') and 'Traceback' not in out.stderr, out.stderr

@@ -216,6 +216,20 @@ def test_sigkill_leaves_every_complete_chunk_readable(ros: Any, tmp_path: Path) 
     s = bag.summary(path)
     assert not s.complete and s.message_count == len(got)
     assert [m.data for _, _, m in bag.read_messages(path)] == got
+    assert s.loss.startswith(f'bag truncated (killed.mcap was not finished): recovered {len(got)} messages')
+
+    # recover makes it a complete bag that rosbags and mcap's default reader open whole.
+    from mcap.reader import make_reader
+    from rosbags.highlevel import AnyReader
+
+    whole = tmp_path / 'whole.mcap'
+    bag.recover(path, whole)
+    with whole.open('rb') as f:
+        assert [m.data for _, _, _, m in make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages()] \
+            == got
+    with AnyReader([whole]) as r:
+        assert [r.deserialize(raw, c.msgtype).data for c, _, raw in r.messages()] == got
+    assert bag.recording_metadata(whole) == bag.recording_metadata(path)
 
 
 def test_contract_topics_are_recorded_before_discovery_notices_their_publisher(ros: Any, tmp_path: Path) -> None:

@@ -120,6 +120,9 @@ CONTRACT: tuple[ContractTopic, ...] = (
     # the selector's per-iteration record (JSON), which the offline evaluation aligns on.
     ContractTopic('/body_schema/update_status', 'diagnostic_msgs/msg/DiagnosticStatus', HISTORY),
     ContractTopic('/calibration/progress', 'std_msgs/msg/String', HISTORY),
+    # The detector's verdict on every frame (calibration_interfaces.outcome.FrameStatus: detected,
+    # no marker, bad input with the reason), so a bad frame is not mistaken for a hidden hand.
+    ContractTopic('/diagnostics', 'diagnostic_msgs/msg/DiagnosticArray'),
     # Which run the graph belongs to, latched by every node of a launched run (RunSettings): a
     # node that receives another id shares its domain with another run and stops.
     ContractTopic('/calibration/run_id', 'std_msgs/msg/String', LATCHED),

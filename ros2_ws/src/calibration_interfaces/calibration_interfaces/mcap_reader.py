@@ -6,7 +6,12 @@ republishes); ``summary`` lists topics, types, counts and the time span.
 
 A file whose writer was killed (SIGKILL, power loss) has no summary and may end in a torn
 chunk: it is then read front to back and every message of the complete chunks is returned, in
-file order (complete files are read in log-time order). ``summary(path).complete`` tells which.
+file order (complete files are read in log-time order). ``summary(path).complete`` tells which
+and ``summary(path).loss`` says, in one line, how much was recovered and what was lost; every
+tool that reads bags (the bag player, the report, the offline evaluation) goes through here and
+reports it. :func:`recover` rewrites such a file into a complete one that other readers open
+(rosbags, mcap's default reader, ``ros2 bag``). An empty or non-MCAP file raises
+:class:`BagError` (one line naming the file), never a parser's exception.
 
 Example
 -------
@@ -25,15 +30,23 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, NamedTuple
 
-from mcap.exceptions import McapError
+from mcap.opcode import Opcode
 from mcap.reader import SeekingReader
-from mcap.records import Channel, Message, Schema
+from mcap.records import Attachment, Channel, Header, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
 import yaml
 from mcap_ros2.decoder import DecoderFactory
 
 #: rmw's RMW_DURATION_INFINITE (2^63 - 1 ns), written as {sec: 9223372036, nsec: 854775807}.
 INFINITE_NS = 2**63 - 1
+
+#: The 8 bytes every MCAP file starts and (when finished) ends with.
+MAGIC = b'\x89MCAP0\r\n'
+
+
+class BagError(ValueError):
+    """A file that is not a readable MCAP bag (empty, another format); the message names it."""
 
 
 @dataclass(frozen=True)
@@ -144,6 +157,10 @@ class BagSummary:
         then come from a scan of the complete records.
     damage : str
         Why the scan of an incomplete file stopped (empty when complete).
+    lost_bytes : int
+        Bytes after the last complete record (0 when complete).
+    torn_record : str
+        The kind of that cut record (``CHUNK``: its messages are lost; ``MESSAGE_INDEX``: none).
     """
 
     path: Path
@@ -155,11 +172,28 @@ class BagSummary:
     end_ns: int = 0
     complete: bool = True
     damage: str = ''
+    lost_bytes: int = 0
+    torn_record: str = ''
 
     @property
     def duration_s(self) -> float:
         """Time between the first and the last message's log time [s]."""
         return (self.end_ns - self.start_ns) * 1e-9 if self.message_count else 0.0
+
+    @property
+    def loss(self) -> str:
+        """One line on what an unfinished file lost (empty when complete)."""
+        if self.complete:
+            return ''
+        end = f'up to t={self.end_ns * 1e-9:.3f} s' if self.message_count else 'none'
+        if not self.lost_bytes:
+            lost = 'no record cut, only the summary missing'
+        elif self.torn_record == 'CHUNK':
+            lost = f'the last chunk ({self.lost_bytes} bytes, cut by the crash) lost'
+        else:
+            lost = f'the last {self.lost_bytes} bytes ({self.torn_record or "a record"} cut by the crash) unreadable'
+        return (f'bag truncated ({self.path.name} was not finished): recovered {self.message_count} messages '
+                f'{end}; {lost}' + (f' [{self.damage}]' if self.damage and self.lost_bytes else ''))
 
 
 def _topic_summary(ch: Channel, schema: Schema | None, count: int) -> TopicSummary:
@@ -171,13 +205,32 @@ def _topic_summary(ch: Channel, schema: Schema | None, count: int) -> TopicSumma
                         ch.metadata.get('topic_type_hash', ''))
 
 
+def _open(path: str | os.PathLike[str]) -> Any:
+    """The file opened for reading; FileNotFoundError if missing, :class:`BagError` unless it starts as MCAP."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f'no bag at {path}')
+    f = open(path, 'rb')   # noqa: SIM115 - the caller closes it
+    start = f.read(len(MAGIC))
+    if start != MAGIC:
+        f.close()
+        what = 'is empty' if not start else f'is not an MCAP file (it starts with {start!r})'
+        raise BagError(f'{path} {what}')
+    f.seek(0)
+    return f
+
+
 def _read_end(f: Any) -> tuple[bool, Any | None]:
     """``(finished, summary)``: whether the file has its footer, and its summary if it has one."""
     try:
+        f.seek(-len(MAGIC), os.SEEK_END)
+        if f.read() != MAGIC:
+            return False, None      # the writer never wrote its closing magic
         f.seek(0)
         return True, SeekingReader(f).get_summary()
-    except (McapError, OSError, ValueError):
-        # Too short for a footer (OSError on seek) or a torn end: the writer never finished.
+    except Exception:   # noqa: BLE001
+        # A torn end that happens to end in the magic is read as whatever the bytes say: a
+        # struct.error, RecordLengthLimitExceeded... The writer never finished.
         return False, None
 
 
@@ -188,11 +241,19 @@ class _Scan:
         self.f = f
         self.schemas: dict[int, Schema] = {}
         self.channels: dict[int, Channel] = {}
+        self.header: Header | None = None
+        self.metadata: list[Metadata] = []
         self.damage = ''
+        self.lost_bytes = 0
+        self.torn_record = ''
 
-    def messages(self) -> Iterator[tuple[Channel, Message]]:
+    def records(self) -> Iterator[Any]:
+        """Every complete record in file order (chunks opened), remembering schemas and channels."""
+        self.f.seek(0, os.SEEK_END)
+        size = self.f.tell()
         self.f.seek(0)
         records = StreamReader(self.f, skip_magic=False).records
+        good_end = 0
         while True:
             try:
                 record = next(records)
@@ -202,12 +263,27 @@ class _Scan:
                 # A torn tail shows up as whatever the cut hits: EndOfFile, struct.error, a
                 # decompressor error... Everything before it was complete: stop there.
                 self.damage = f'{type(exc).__name__}: {exc}' if str(exc) else type(exc).__name__
+                self.lost_bytes = size - good_end
+                self.f.seek(good_end)
+                opcode = self.f.read(1)
+                if opcode:
+                    self.torn_record = Opcode(opcode[0]).name if opcode[0] in Opcode._value2member_map_ \
+                        else f'opcode {opcode[0]:#x}'
                 return
-            if isinstance(record, Schema):
+            good_end = self.f.tell()     # a chunk is read whole before its records come out
+            if isinstance(record, Header):
+                self.header = record
+            elif isinstance(record, Schema):
                 self.schemas[record.id] = record
             elif isinstance(record, Channel):
                 self.channels[record.id] = record
-            elif isinstance(record, Message) and record.channel_id in self.channels:
+            elif isinstance(record, Metadata):
+                self.metadata.append(record)
+            yield record
+
+    def messages(self) -> Iterator[tuple[Channel, Message]]:
+        for record in self.records():
+            if isinstance(record, Message) and record.channel_id in self.channels:
                 yield self.channels[record.channel_id], record
 
 
@@ -218,15 +294,15 @@ def summary(path: str | os.PathLike[str]) -> BagSummary:
     ------
     FileNotFoundError
         If ``path`` does not exist.
-    mcap.exceptions.InvalidMagic
-        If ``path`` is not an MCAP file.
+    BagError
+        If ``path`` is empty or not an MCAP file.
     """
     path = Path(path)
-    with open(path, 'rb') as f:
-        reader = SeekingReader(f)   # checks the magic
-        header = reader.get_header()
+    with _open(path) as f:
         finished, s = _read_end(f)
         if s is not None and s.statistics is not None:
+            f.seek(0)
+            header = SeekingReader(f).get_header()
             counts = s.statistics.channel_message_counts
             topics = {ch.topic: _topic_summary(ch, s.schemas.get(ch.schema_id), counts.get(cid, 0))
                       for cid, ch in sorted(s.channels.items())}
@@ -243,8 +319,10 @@ def summary(path: str | os.PathLike[str]) -> BagSummary:
             n += 1
         topics = {ch.topic: _topic_summary(ch, scan.schemas.get(ch.schema_id), counts.get(cid, 0))
                   for cid, ch in sorted(scan.channels.items())}
+        header = scan.header or Header(profile='', library='')
         return BagSummary(path, header.profile, header.library, topics, n, t0, t1,
-                          complete=finished, damage=scan.damage)
+                          complete=finished, damage=scan.damage, lost_bytes=scan.lost_bytes,
+                          torn_record=scan.torn_record)
 
 
 def recording_metadata(path: str | os.PathLike[str]) -> dict[str, str]:
@@ -254,20 +332,25 @@ def recording_metadata(path: str | os.PathLike[str]) -> dict[str, str]:
     are system time, as rosbag2's without ``--use-sim-time``; that default is returned.
     """
     out = {'log_time': 'system', 'tf': 'none'}
-    with open(path, 'rb') as f:
-        try:
-            for record in SeekingReader(f).iter_metadata():
-                if record.name == 'recording':
-                    out.update(record.metadata)
-        except McapError:
-            pass   # a killed recording has no metadata index: say what an old bag says
+    with _open(path) as f:
+        if _read_end(f)[0]:
+            f.seek(0)
+            records: Iterable[Metadata] = SeekingReader(f).iter_metadata()
+        else:      # a killed recording has no metadata index: its records are in the data section
+            scan = _Scan(f)
+            for _ in scan.records():
+                pass
+            records = scan.metadata
+        for record in records:
+            if record.name == 'recording':
+                out.update(record.metadata)
     return out
 
 
 def _iter(path: Path, topics: Iterable[str] | None,
           start_ns: int | None) -> Iterator[tuple[Schema | None, Channel, Message]]:
     wanted = None if topics is None else set(topics)
-    with open(path, 'rb') as f:
+    with _open(path) as f:
         if _read_end(f)[0]:
             f.seek(0)
             yield from SeekingReader(f).iter_messages(
@@ -321,3 +404,76 @@ def read_messages(path: str | os.PathLike[str],
                                  f'{ch.message_encoding!r} / schema '
                                  f'{schema.encoding if schema else None!r}')
         yield ch.topic, msg.log_time, dec(msg.data)
+
+
+#: Chunk compressions :func:`recover` can write.
+COMPRESSIONS = {'zstd': CompressionType.ZSTD, 'lz4': CompressionType.LZ4, 'none': CompressionType.NONE}
+
+
+def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str], *, compression: str = 'zstd',
+            chunk_size: int = 1 << 20) -> BagSummary:
+    """Rewrite a bag (typically an unfinished one) as a complete MCAP file, like ``mcap recover``.
+
+    Every complete record of ``src`` is copied in file order through :class:`mcap.writer.Writer`:
+    the header, schemas, channels (with their metadata: QoS, type hash), messages (log and
+    publish times, sequence), metadata records (e.g. ``recording``) and attachments; the writer
+    adds what the killed writer never wrote: message and chunk indexes, statistics, the summary
+    and the footer. Readers that need the summary (rosbags, mcap's ``make_reader``) then open it.
+
+    Parameters
+    ----------
+    src, dst : path
+        The bag to read and the file to write (must differ).
+    compression : {'zstd', 'lz4', 'none'}
+        Chunk compression of ``dst``.
+    chunk_size : int
+        Uncompressed bytes per chunk of ``dst``.
+
+    Returns
+    -------
+    BagSummary
+        What ``src`` held (its :attr:`BagSummary.loss` says what the crash lost).
+
+    Raises
+    ------
+    FileNotFoundError, BagError
+        As :func:`summary`, for ``src``.
+    ValueError
+        If ``dst`` is ``src``, or on an unknown compression or a non-positive chunk size.
+    """
+    src, dst = Path(src), Path(dst)
+    if compression not in COMPRESSIONS:
+        raise ValueError(f'compression {compression!r} is not one of {tuple(COMPRESSIONS)}')
+    if chunk_size <= 0:
+        raise ValueError(f'chunk_size must be positive, got {chunk_size}')
+    if dst.exists() and src.exists() and dst.resolve() == src.resolve():
+        raise ValueError(f'recover {src}: the output must be another file')
+    source = summary(src)
+    part = dst.with_name(dst.name + '.part')     # renamed when finished: no half-written output
+    with _open(src) as f, open(part, 'wb') as out:
+        writer = Writer(out, chunk_size=chunk_size, compression=COMPRESSIONS[compression])
+        started = False
+        schema_ids: dict[int, int] = {}
+        channel_ids: dict[int, int] = {}
+        for record in _Scan(f).records():
+            if isinstance(record, Header):
+                writer.start(record.profile, record.library)
+                started = True
+            elif isinstance(record, Schema) and record.id not in schema_ids:   # the summary repeats them
+                schema_ids[record.id] = writer.register_schema(record.name, record.encoding, record.data)
+            elif isinstance(record, Channel) and record.id not in channel_ids:
+                channel_ids[record.id] = writer.register_channel(
+                    record.topic, record.message_encoding, schema_ids.get(record.schema_id, 0), record.metadata)
+            elif isinstance(record, Message) and record.channel_id in channel_ids:
+                writer.add_message(channel_ids[record.channel_id], record.log_time, record.data,
+                                   record.publish_time, record.sequence)
+            elif isinstance(record, Metadata):
+                writer.add_metadata(record.name, record.metadata)
+            elif isinstance(record, Attachment):
+                writer.add_attachment(record.create_time, record.log_time, record.name, record.media_type,
+                                      record.data)
+        if not started:       # the header itself was torn: an MCAP file of nothing
+            writer.start(source.profile, source.library)
+        writer.finish()
+    os.replace(part, dst)
+    return source

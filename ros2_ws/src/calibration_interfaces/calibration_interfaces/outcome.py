@@ -2,24 +2,34 @@
 
 The estimator decides ACCEPTED / REJECTED / DUPLICATE for an observation it was offered; its
 pairing stage adds MOVING / INVALID / DROPPED; the selector's loop adds FAILED / UNREACHABLE /
-TIMEOUT for an iteration that produced no estimator outcome. Every stage uses these members, the
+TIMEOUT / BAD_INPUT for an iteration that produced no estimator outcome. Every stage uses these members, the
 progress records and the bag hold their values.
 
 The estimator publishes one ``diagnostic_msgs/DiagnosticStatus`` per attempt on
 ``/body_schema/update_status``; its key/value pairs are named by :class:`StatusKey` and
 encoded by :func:`encode_status` / decoded by :func:`decode_status`, so the selector and the
 offline evaluation read them through this module rather than through a string convention.
+
+The detector judges every camera frame (:class:`FrameStatus`: the hand detected, no marker, or an
+input it cannot judge) and publishes that verdict per frame on ``/diagnostics``
+(``diagnostic_msgs/DiagnosticArray``, one status per eye named :data:`DETECTOR_DIAGNOSTIC`, keys
+:class:`FrameKey`, written by :func:`encode_frame` and read by :func:`decode_frame`): only a
+``no_marker`` frame is evidence that the hand was not visible.
 """
 from __future__ import annotations
 
 import enum
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-__all__ = ['Outcome', 'StatusKey', 'UpdateStatus', 'encode_status', 'decode_status', 'StatusFormatError']
+__all__ = ['Outcome', 'StatusKey', 'UpdateStatus', 'encode_status', 'decode_status', 'StatusFormatError',
+           'FrameStatus', 'FrameKey', 'FrameReport', 'DETECTOR_DIAGNOSTIC', 'encode_frame', 'decode_frame']
+
+T = TypeVar('T')
 
 
 class Outcome(enum.StrEnum):
@@ -36,11 +46,19 @@ class Outcome(enum.StrEnum):
     FAILED = 'failed'             # loop: no marker detected after settling
     UNREACHABLE = 'unreachable'   # loop: the target was not reached in time
     TIMEOUT = 'timeout'           # loop: settled and seen, but no estimator outcome in time
+    BAD_INPUT = 'bad_input'       # loop: after settling, only frames the detector could not judge
+                                  # (bad image or camera_info): says nothing about visibility
 
     @property
     def updated(self) -> bool:
         """Whether the estimator evaluated the observation (accepted, outlier or gated out)."""
         return self in (Outcome.ACCEPTED, Outcome.OUTLIER, Outcome.REJECTED)
+
+    @property
+    def informs_visibility(self) -> bool:
+        """Whether the iteration may teach the occlusion model (a frame was judged at the reached
+        configuration): not for an unreached target nor for frames that were bad input."""
+        return self not in (Outcome.UNREACHABLE, Outcome.BAD_INPUT)
 
 
 class StatusKey(enum.StrEnum):
@@ -112,15 +130,76 @@ def decode_status(values: Mapping[str, str]) -> UpdateStatus:
     StatusFormatError
         If a key is missing or a value does not parse; the message names it.
     """
+    return _parsed('update status', values, lambda: UpdateStatus(
+        outcome=Outcome(values[StatusKey.OUTCOME]), stamp=float(values[StatusKey.STAMP]),
+        joints=np.array([float(v) for v in values[StatusKey.JOINTS].split()], dtype=float),
+        mahalanobis=float(values[StatusKey.MAHALANOBIS]),
+        update_seconds=float(values[StatusKey.UPDATE_S]),
+        counters={**{k.value: int(values[k]) for k in _COUNTERS},
+                  **{k.value: int(values.get(k, 0)) for k in _NEWER_COUNTERS}}))
+
+
+class FrameStatus(enum.StrEnum):
+    """The detector's verdict on one frame (one eye, or a stereo pair)."""
+
+    DETECTED = 'detected'         # the hand was found (/hand_pose published)
+    NO_MARKER = 'no_marker'       # a valid frame without an accepted marker: the hand not visible
+    BAD_INPUT = 'bad_input'       # the frame or its camera_info could not be judged: no /markers
+
+    @property
+    def level(self) -> int:
+        """The ``diagnostic_msgs/DiagnosticStatus`` level: OK (0), WARN (1) or ERROR (2)."""
+        return {FrameStatus.DETECTED: 0, FrameStatus.NO_MARKER: 1, FrameStatus.BAD_INPUT: 2}[self]
+
+
+class FrameKey(enum.StrEnum):
+    """Keys of the detector's per-frame DiagnosticStatus values."""
+
+    STATUS = 'status'             # a FrameStatus value
+    STAMP = 'stamp'               # image stamp [s], '%.9f'
+    KIND = 'kind'                 # what was bad (e.g. 'image.encoding', 'camera_info.D'); '' otherwise
+
+
+#: ``name`` of the detector's per-frame DiagnosticStatus (``hardware_id`` is the eye).
+DETECTOR_DIAGNOSTIC = 'marker_detector'
+
+
+@dataclass(frozen=True)
+class FrameReport:
+    """One frame's verdict as carried by ``/diagnostics``.
+
+    Attributes
+    ----------
+    status : FrameStatus
+    stamp : float
+        Image stamp [s].
+    kind : str
+        What was bad, for ``bad_input``; empty otherwise.
+    """
+
+    status: FrameStatus
+    stamp: float
+    kind: str = ''
+
+
+def encode_frame(status: FrameStatus | str, stamp: float, kind: str = '') -> dict[str, str]:
+    """The key/value strings of one frame verdict (the DiagnosticStatus ``values``)."""
+    return {FrameKey.STATUS.value: FrameStatus(status).value, FrameKey.STAMP.value: f'{stamp:.9f}',
+            FrameKey.KIND.value: kind}
+
+
+def decode_frame(values: Mapping[str, str]) -> FrameReport:
+    """The frame verdict :func:`encode_frame` wrote; a :class:`StatusFormatError` names a missing
+    key or a value that does not parse."""
+    return _parsed('frame status', values, lambda: FrameReport(
+        FrameStatus(values[FrameKey.STATUS]), float(values[FrameKey.STAMP]), values.get(FrameKey.KIND, '')))
+
+
+def _parsed(what: str, values: Mapping[str, str], build: Callable[[], T]) -> T:
+    """``build()``, with a missing key or a value that does not parse as a StatusFormatError."""
     try:
-        return UpdateStatus(
-            outcome=Outcome(values[StatusKey.OUTCOME]), stamp=float(values[StatusKey.STAMP]),
-            joints=np.array([float(v) for v in values[StatusKey.JOINTS].split()], dtype=float),
-            mahalanobis=float(values[StatusKey.MAHALANOBIS]),
-            update_seconds=float(values[StatusKey.UPDATE_S]),
-            counters={**{k.value: int(values[k]) for k in _COUNTERS},
-                      **{k.value: int(values.get(k, 0)) for k in _NEWER_COUNTERS}})
+        return build()
     except KeyError as exc:
-        raise StatusFormatError(f'update status lacks key {exc.args[0]!r}; has {sorted(values)}') from None
+        raise StatusFormatError(f'{what} lacks key {exc.args[0]!r}; has {sorted(values)}') from None
     except ValueError as exc:
-        raise StatusFormatError(f'update status {dict(values)!r} does not parse: {exc}') from exc
+        raise StatusFormatError(f'{what} {dict(values)!r} does not parse: {exc}') from exc

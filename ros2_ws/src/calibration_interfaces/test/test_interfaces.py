@@ -15,7 +15,7 @@ from calibration_interfaces.dh_file import DhFileError, read_dh_file, write_dh_f
 from calibration_interfaces.outcome import Outcome, StatusFormatError, StatusKey, decode_status, encode_status
 from calibration_interfaces.parameters import markdown_table, parameter_specs, setting, settings_from_parameters
 
-PURE = ['contract', 'dh_file', 'outcome', 'parameters', 'messages']
+PURE = ['contract', 'dh_file', 'outcome', 'parameters', 'messages', 'throttle']
 
 
 def test_pure_modules_do_not_import_rclpy() -> None:
@@ -163,3 +163,31 @@ def test_spin_node_runs_the_given_loop_then_destroys_the_node_and_shuts_down(mon
     with pytest.raises(RuntimeError, match='boom'):
         spin_node(lambda: (_ for _ in ()).throw(RuntimeError('boom')), ['probe'])
     assert not rclpy.ok()
+
+
+def test_keyed_throttle_lets_every_kind_through_and_counts_what_it_hid() -> None:
+    """Twelve distinct problems in a burst are twelve lines (one throttle per call site logged six);
+    repeats of one kind within the period are suppressed and counted on its next line."""
+    from calibration_interfaces.throttle import KeyedThrottle
+
+    clock = [0.0]
+    throttle = KeyedThrottle(2.0, clock=lambda: clock[0])
+    logged = [throttle(f'kind{i % 12}', f'problem {i}') for i in range(120)]
+    assert [t for t in logged if t is not None] == [f'problem {i}' for i in range(12)]
+    assert throttle.counts['kind3'] == 10
+    clock[0] = 2.5
+    assert throttle('kind3', 'again') == 'again (9 more like it suppressed)'
+    assert throttle('kind3', 'and again') is None
+    with pytest.raises(ValueError, match='period'):
+        KeyedThrottle(float('nan'))
+
+
+def test_frame_verdict_round_trip_and_levels() -> None:
+    from calibration_interfaces.outcome import FrameStatus, decode_frame, encode_frame
+
+    r = decode_frame(encode_frame('bad_input', 3.25, 'image.step'))
+    assert (r.status, r.stamp, r.kind) == (FrameStatus.BAD_INPUT, 3.25, 'image.step')
+    assert [s.level for s in FrameStatus] == [0, 1, 2]
+    assert not Outcome.BAD_INPUT.informs_visibility and Outcome.FAILED.informs_visibility
+    with pytest.raises(StatusFormatError, match='status'):
+        decode_frame({'stamp': '1.0'})

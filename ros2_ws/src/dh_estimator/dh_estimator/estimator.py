@@ -7,6 +7,8 @@ after each one, robust loss, adapts to a changing body) or the paper's EKF
 paper's form); plus one update per static configuration (a repeated observation of the same configuration is not new
 evidence), counters, an atomic checkpoint of ``(x, P, counters)`` to resume after a crash, and
 export of the calibrated model as a DH-table YAML with one-sigma uncertainties and as a URDF.
+Parameter combinations the box cannot identify (:mod:`body_schema.identifiability`) are held at
+the initial guess by the MAP estimator and named in the export (``identifiability``).
 """
 from __future__ import annotations
 
@@ -21,6 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from body_schema import ArmModel
 from body_schema import ekf as ekf_mod
+from body_schema import identifiability
 from body_schema.map_estimator import LOSSES, MapEstimator, MapSettings
 from body_schema.urdf import model_urdf
 from calibration_interfaces.dh_file import write_dh_file
@@ -32,6 +35,8 @@ __all__ = ['EstimatorSettings', 'OnlineEstimator', 'ESTIMATORS']
 #: Estimator back ends: the online MAP smoother (default) and the paper's EKF.
 ESTIMATORS = ('map', 'ekf')
 _MAP = MapSettings()
+#: Standard deviation [m or rad per unit direction] of the prior holding unidentifiable directions.
+FIXED_STD = 1e-6
 
 
 @dataclass(frozen=True)
@@ -142,8 +147,12 @@ class OnlineEstimator:
             raise ValueError(f'initial guess has {x0.size} parameters, the model {n}')
         self.ekf: ekf_mod.ExtendedKalmanFilter | None = None
         self.map: MapEstimator | None = None
+        # Combinations of the table no hand pose over the box separates (a UR's parallel axes):
+        # the MAP estimator holds them at the initial guess, the export and the report name them.
+        self.identifiability = identifiability.analyse(model)
         if settings.estimator == 'map':
-            self.map = MapEstimator(model.base, x0, P0, settings.map_settings(), limits=model.limits)
+            self.map = MapEstimator(model.base, x0, P0, settings.map_settings(), limits=model.limits,
+                                    fixed_directions=self.identifiability.null_space, fixed_std=FIXED_STD)
         else:
             per_link = np.array([settings.q_length, settings.q_length, settings.q_angle, settings.q_angle])
             self.gate = ekf_mod.chi2_gate(6, settings.gate_probability) if settings.gate_probability > 0 else None
@@ -285,8 +294,12 @@ class OnlineEstimator:
         ``<stem>.urdf``; return both paths."""
         directory = Path(directory)
         sigma = np.sqrt(np.diag(self.P)).reshape(self.model.dh.shape)
+        ident = self.identifiability.as_dict()
+        if self.identifiability.n_unidentifiable:
+            ident['held'] = (f'at the initial guess by a prior of standard deviation {FIXED_STD:g} along each '
+                             f'direction (MAP)' if self.map is not None else 'not held (EKF): the filter may drift along them')
         yaml_path = write_dh_file(directory / f'{stem}_dh.yaml', self.dh, self.model.joint_names,
-                                  self.model.name, sigma, extra={'updates': self.counters})
+                                  self.model.name, sigma, extra={'updates': self.counters, 'identifiability': ident})
         urdf_path = directory / f'{stem}.urdf'
         urdf_path.write_text(model_urdf(self.calibrated_model()))
         return yaml_path, urdf_path

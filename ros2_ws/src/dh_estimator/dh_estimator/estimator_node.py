@@ -8,9 +8,12 @@ robust loss and detects body changes; ``estimator: ekf`` is the paper's filter.
 Subscriptions
 -------------
 /joint_states : sensor_msgs/JointState
-    Buffered; names are matched to the robot description's joints.
+    Buffered by stamp; names are matched to the robot description's joints. A stamp more than
+    ``clock_tolerance`` ahead of the node's clock is refused (a throttled warning with the
+    count); the clock stepping back (a simulator restart) restarts the buffer with a warning.
 /hand_pose : geometry_msgs/PoseWithCovarianceStamped
-    Hand pose in root_link, stamp = image stamp, covariance from the detector's noise model.
+    Hand pose in root_link, stamp = image stamp, covariance from the detector's noise model;
+    refused like a joint state when stamped in the future.
 /arm/command : trajectory_msgs/JointTrajectory
     The latest commanded target: with ``require_command`` only observations taken while the
     arm rests at it are measurement attempts (not the start pose, not a pose passed on the way).
@@ -65,10 +68,14 @@ from calibration_interfaces.messages import covariance_to_msg, table_to_msg
 from calibration_interfaces.node_util import WarnOnce, declare_settings, qos_profile, spin_node
 from calibration_interfaces.noise import NoiseSettings
 from calibration_interfaces.outcome import Outcome, encode_status
+from calibration_interfaces.throttle import KeyedThrottle
 
 from .estimator import EstimatorSettings, OnlineEstimator
 from .node_settings import EstimatorNodeSettings
 from .pairing import MessageError, MessageFeeder, ObservationPairer, ObservationResult, PairingSettings
+
+#: Seconds between two warnings about the same clock fault (each one carries the running count).
+THROTTLE_S = 5.0
 
 # Best effort matches any publisher; the deep queue keeps the rest window intact under bursts.
 JOINT_STATES_QOS = qos_profile(SENSOR, depth=200)
@@ -104,6 +111,7 @@ class EstimatorNode(Node):
 
         self.last_update_s = 0.0
         self._warn_once = WarnOnce(self)
+        self._throttle = KeyedThrottle(THROTTLE_S)
         self.pub_estimate = self.create_publisher(Float64MultiArray, '/body_schema/estimate',
                                                   qos_profile('/body_schema/estimate'))
         self.pub_cov = self.create_publisher(Float64MultiArray, '/body_schema/covariance',
@@ -130,14 +138,32 @@ class EstimatorNode(Node):
 
     # ---------------------------------------------------------------------------------------
 
+    def _now(self) -> float | None:
+        """The node's clock [s]; None before a simulated clock has started (no /clock yet)."""
+        ns = self.get_clock().now().nanoseconds
+        return ns * 1e-9 if ns else None
+
     def _feed(self, topic: str, msg: Any) -> None:
+        resets = self.pairer.counters['clock_resets']
         try:
-            self._handle(self.feeder.feed(topic, msg))
+            results = self.feeder.feed(topic, msg, self._now())
         except MessageError as exc:
             if exc.once:
                 self._warn_once(exc.key, str(exc))
             else:
-                self.get_logger().warning(str(exc))
+                self._warn(exc.key, str(exc))
+            return
+        if self.pairer.counters['clock_resets'] != resets:
+            self.get_logger().warning(f'the clock stepped back (now {self._now():.3f} s): joint states of the '
+                                      f'old timeline forgotten ({self.pairer.counters["clock_resets"]} restarts)')
+        self._handle(results)
+
+    def _warn(self, key: str, text: str) -> None:
+        """A warning throttled per kind of problem (``key``): a burst of one kind is not a
+        screenful, and does not hide another kind."""
+        out = self._throttle(key, text)
+        if out is not None:
+            self.get_logger().warning(out)
 
     def on_joint_state(self, msg: JointState) -> None:
         self._feed('/joint_states', msg)
@@ -151,13 +177,13 @@ class EstimatorNode(Node):
     def _handle(self, results: list[ObservationResult]) -> None:
         for a in results:
             if a.outcome is Outcome.DROPPED:
-                self.get_logger().warning(f'hand pose at {a.stamp:.3f} s dropped: {a.message}')
+                self._warn('dropped', f'hand pose at {a.stamp:.3f} s dropped: {a.message}')
                 continue
             if a.outcome is Outcome.DUPLICATE:
                 continue                             # the same static configuration: not new evidence
             self.last_update_s = a.update_seconds
             if a.outcome is Outcome.INVALID:
-                self.get_logger().warning(f'hand pose at {a.stamp:.3f} s rejected as invalid input: {a.message}')
+                self._warn('invalid', f'hand pose at {a.stamp:.3f} s rejected as invalid input: {a.message}')
             elif a.outcome.updated:
                 if a.outcome is not Outcome.ACCEPTED:      # an outlier (MAP) or gated out (EKF)
                     self.get_logger().warning(f'{a.outcome.value} at {a.stamp:.3f} s: {a.message} '

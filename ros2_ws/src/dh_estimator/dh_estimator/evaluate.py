@@ -10,7 +10,13 @@ baseline on the very same images), and scores the estimate after every iteration
 average position and orientation error over 1000 configurations of the calibration box.
 
 The estimate the online node published (``/body_schema/estimate``) is scored next to it; with
-equal settings the two agree (the test suite checks it).
+equal settings the two agree (the test suite checks it). A joint state's log time stands for
+the node's clock when it arrived (the simulator publishes ``/clock`` with every joint state, and
+the recorder logs on it), so joint states stamped in the future and clock steps back are judged
+as online. Hand poses are not judged on it: under image load the recorder logs them before the
+joint states it is still catching up on (up to 1.9 s of log time early, measured at rtf 2), so
+the re-run keeps them waiting for their joint states; a stray future one then never meets a
+joint state and makes no update, as online, where it is refused.
 
 Usage::
 
@@ -18,7 +24,9 @@ Usage::
 
 writes ``DIR/metrics.csv``, ``DIR/error_vs_iteration.png`` and ``DIR/error_vs_movement.png``
 and prints a summary. No rclpy is needed: messages are decoded with ``mcap-ros2-support``
-(:mod:`calibration_interfaces.mcap_reader`, which also reads a killed recording).
+(:mod:`calibration_interfaces.mcap_reader`, which also reads a killed recording: the summary
+then says how much was recovered and what was lost). An empty, missing or non-MCAP file is
+one line on stderr and exit status 2.
 """
 from __future__ import annotations
 
@@ -33,8 +41,10 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.stats import chi2
 
 from body_schema import load_robot, sampling
+from body_schema.identifiability import subspace_nees
 from body_schema.map_estimator import LOSSES
 from body_schema.metrics import PoseErrorEvaluator, expected_pose_errors
 from body_schema.noise import NOISE_MODELS
@@ -120,6 +130,15 @@ class Evaluation:
     true_dh: NDArray[np.float64]
     counters: dict[str, int]
     strategy: str
+    #: What the bag held (``bag.loss``: what a crash of the recorder lost, empty when complete).
+    bag: mcap_reader.BagSummary | None = None
+    #: The pairing's time faults in the re-run (:attr:`~dh_estimator.pairing.ObservationPairer.counters`).
+    pairing: dict[str, int] = field(default_factory=dict)
+    # What the box cannot identify (body_schema.identifiability), and the final offline
+    # estimate's NEES on the identifiable rest (chi-square with `identifiable` dof if consistent).
+    unidentifiable: tuple[str, ...] = ()
+    identifiable: int = 0
+    nees_identifiable: float = float('nan')
 
     @property
     def max_online_offline_difference(self) -> float:
@@ -144,13 +163,14 @@ def evaluate_bag(path: str | Path, settings: EvaluationSettings = EvaluationSett
     ------
     FileNotFoundError
         If ``path`` does not exist.
+    calibration_interfaces.mcap_reader.BagError
+        If ``path`` is empty or not an MCAP file.
     BagFormatError
         If the bag has no ``/body_schema/true`` or (for ``initial='recorded'``) no estimate
         recorded before the first update.
     """
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f'no bag at {path}')
+    bag = mcap_reader.summary(path)
     model = load_robot(settings.robot)
     x0: NDArray[np.float64] | None = None
     P0: NDArray[np.float64] | None = None  # noqa: N806
@@ -168,7 +188,7 @@ def evaluate_bag(path: str | Path, settings: EvaluationSettings = EvaluationSett
     started = False                 # an update status seen: later estimates are not the initial one
     strategy = ''
     progress: list[tuple[dict[str, Any], NDArray[np.float64], NDArray[np.float64] | None, int]] = []
-    backlog: list[tuple[str, Any]] = []     # inputs that arrive before the filter can start
+    backlog: list[tuple[str, Any, float]] = []    # inputs that arrive before the filter can start
 
     def start() -> None:
         nonlocal estimator, feeder
@@ -176,13 +196,13 @@ def evaluate_bag(path: str | Path, settings: EvaluationSettings = EvaluationSett
         feeder = MessageFeeder(ObservationPairer(estimator, settings.pairing), model.joint_names,
                                settings.noise.build() if settings.noise.constant else None)
 
-    def feed(topic: str, msg: Any) -> None:
+    def feed(topic: str, msg: Any, now: float) -> None:
         try:
-            feeder.feed(topic, msg)
+            feeder.feed(topic, msg, None if topic == '/hand_pose' else now)
         except MessageError:
             pass            # the node ignores it too (with a warning)
 
-    for topic, _, msg in mcap_reader.read_messages(path, TOPICS):
+    for topic, log_ns, msg in mcap_reader.read_messages(path, TOPICS):
         if topic == '/body_schema/true':
             true_dh = msg_to_table(msg, model.n_joints)
             evaluator = PoseErrorEvaluator(model.base, true_dh, model.calibration_box)
@@ -211,9 +231,9 @@ def evaluate_bag(path: str | Path, settings: EvaluationSettings = EvaluationSett
                         feed(*item)
                     backlog.clear()
                 else:
-                    backlog.append((topic, msg))
+                    backlog.append((topic, msg, log_ns * 1e-9))
                     continue
-            feed(topic, msg)
+            feed(topic, msg, log_ns * 1e-9)
     if evaluator is None:
         raise BagFormatError(f'{path}: no /body_schema/true message; the evaluation needs the real table')
     if estimator is None:
@@ -240,8 +260,11 @@ def evaluate_bag(path: str | Path, settings: EvaluationSettings = EvaluationSett
                                  float(record['movement_deg']), int(record['discarded']), pos, ori, opos, oori,
                                  n_updates, float(record.get('selection_s', 0.0)),
                                  float(record.get('sim_time', 0.0)), *limit(dh, P)))
+    ident = estimator.identifiability
+    nees = subspace_nees(estimator.x - true_dh.ravel(), estimator.P, ident.identifiable_basis)
     return Evaluation(rows, estimator.dh.copy(), x0 if online is None else online, true_dh,
-                      estimator.counters, strategy)
+                      estimator.counters, strategy, bag, dict(feeder.pairer.counters),
+                      tuple(ident.describe()) if ident.n_unidentifiable else (), ident.rank, nees)
 
 
 def write_csv(rows: Sequence[IterationRow], path: str | Path) -> Path:
@@ -299,7 +322,10 @@ def summary_text(ev: Evaluation) -> str:
     """A few lines: initial and final errors, movement, discarded samples, online/offline agreement."""
     first, last = ev.rows[0], ev.rows[-1]
     c = ev.counters
-    return (f'iterations {last.iteration} ({ev.strategy or "unknown strategy"}), updates {c["updates"]}, '
+    faults = ', '.join(f'{k.replace("_", " ")} {n}' for k, n in ev.pairing.items() if n)
+    return ((f'{ev.bag.loss}\n' if ev.bag is not None and ev.bag.loss else '')
+            + (f'time faults in the re-run: {faults}\n' if faults else '')
+            + f'iterations {last.iteration} ({ev.strategy or "unknown strategy"}), updates {c["updates"]}, '
             f'rejected {c["rejected"]}, outliers {c.get("outliers", 0)}, body changes detected '
             f'{c.get("changes", 0)}, discarded samples {last.discarded}\n'
             f'position error    {first.position_mm:8.2f} mm  -> {last.position_mm:7.2f} mm '
@@ -309,7 +335,21 @@ def summary_text(ev: Evaluation) -> str:
             f'information limit {last.expected_position_mm:.2f} mm, {last.expected_orientation_deg:.2f} deg '
             '(the error the final covariance implies over the calibration box)\n'
             f'accumulated movement {last.movement_deg:.0f} deg; max |offline - online| DH difference '
-            f'{ev.max_online_offline_difference:.2e}')
+            f'{ev.max_online_offline_difference:.2e}'
+            + identifiability_text(ev))
+
+
+def identifiability_text(ev: Evaluation) -> str:
+    """Lines on what the box cannot identify and the NEES on what it can ('' for an old evaluation)."""
+    if not ev.identifiable:
+        return ''
+    n = ev.final_dh.size
+    band = chi2.ppf([0.025, 0.975], ev.identifiable)
+    text = (f'\nidentifiable {ev.identifiable} of {n} parameter combinations; final NEES on them '
+            f'{ev.nees_identifiable:.1f} (95% band {band[0]:.1f}-{band[1]:.1f})')
+    for line in ev.unidentifiable:
+        text += f'\nnot identifiable (held at the initial guess): {line}'
+    return text
 
 
 def _parser() -> argparse.ArgumentParser:

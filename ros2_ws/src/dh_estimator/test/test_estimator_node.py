@@ -133,3 +133,42 @@ def test_unknown_choices_are_refused_with_the_value(ros):
 
     with pytest.raises(ValueError, match="noise_model: 'message' is not one of"):
         EstimatorNode(context=ros.context, parameter_overrides=[Parameter('noise_model', value='message')])
+
+
+def test_a_future_stamp_and_a_clock_step_back_do_not_stall_the_node(ros):
+    # On main one /joint_states stamped in the future made every later real one 'older than the
+    # newest' and thrown away, and after a simulator restart (sim time back to 0) nothing was
+    # paired again: no update after either, for the rest of the run.
+    from rosgraph_msgs.msg import Clock
+
+    node, js, hp, _ = _setup(ros, use_sim_time=True)
+    clock = ros.node('sim_clock').create_publisher(Clock, '/clock', 10)
+    ros.spin_until(lambda: clock.get_subscription_count() > 0, 10.0, 'discovery of /clock')
+
+    def at(t):
+        msg = Clock()
+        msg.clock.sec, msg.clock.nanosec = int(t), int(round((t % 1) * 1e9))
+        clock.publish(msg)
+        ros.spin_until(lambda: abs(node.get_clock().now().nanoseconds - int(round(t * 1e9))) < 1000, 5.0,
+                       f'the node clock at {t} s')
+
+    def rest_and_observe(q, t0, n_updates, stray=None):
+        for t in np.arange(t0, t0 + 1.0, 0.05):
+            at(float(t))
+            js.publish(_joint_state(float(t), q))
+            ros.executor.spin_once(timeout_sec=0.001)
+            if stray is not None and t > t0 + 0.5:
+                js.publish(_joint_state(stray, q + 0.5))
+                stray = None
+        hp.publish(_hand_pose(t0 + 0.9, ARM.forward_kinematics(q)))
+        ros.spin_until(lambda: node.estimator.counters['updates'] == n_updates, 5.0, f'update {n_updates}')
+
+    q1, q2, q3 = body_schema.sampling.uniform_configs(ARM.calibration_box, 3, 7)
+    rest_and_observe(q1, 100.0, 1, stray=5000.0)            # one joint state stamped 4900 s ahead
+    rest_and_observe(q2, 101.0, 2)
+    assert node.pairer.counters['future_joint_states'] == 1
+    rest_and_observe(q3, 0.0, 3)                             # the simulator restarted: time back to 0
+    assert node.pairer.counters['clock_resets'] == 1
+    hp.publish(_hand_pose(9000.0, ARM.forward_kinematics(q3)))
+    ros.spin_until(lambda: node.pairer.counters['future_hand_poses'] == 1, 5.0, 'the future hand pose refused')
+    assert node.pairer._pending == []

@@ -57,8 +57,8 @@ def _attempts() -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
 class Bag:
     """Writes messages with increasing log times."""
 
-    def __init__(self, path: Path) -> None:
-        self.w = McapBagWriter(path)
+    def __init__(self, path: Path, chunk_size: int = 1 << 20) -> None:
+        self.w = McapBagWriter(path, chunk_size=chunk_size)
         self.t_ns = 0
 
     def put(self, topic: str, type_name: str, msg: object, t: float) -> None:
@@ -68,9 +68,14 @@ class Bag:
 
 
 def write_bag(path: Path, *, true: bool = True, initial: bool = True,
-              online: list[np.ndarray] | None = None) -> Path:
-    """The synthetic run; ``online`` are the tables the 'node' published after each update."""
-    bag = Bag(path)
+              online: list[np.ndarray] | None = None, stray_at: float | None = None,
+              chunk_size: int = 1 << 20) -> Path:
+    """The synthetic run; ``online`` are the tables the 'node' published after each update.
+
+    ``stray_at``: log time [s] of one extra joint state stamped 1000 s (a publisher with a wrong
+    clock that only the recorder heard).
+    """
+    bag = Bag(path, chunk_size)
     if true:
         bag.put('/body_schema/true', 'std_msgs/msg/Float64MultiArray', table_to_msg(TRUE_DH), 0.0)
     if initial:
@@ -87,6 +92,11 @@ def write_bag(path: Path, *, true: bool = True, initial: bool = True,
             js = JointState(name=list(MODEL.joint_names), position=q.tolist())
             js.header.stamp = _stamp(float(t))
             bag.put('/joint_states', 'sensor_msgs/msg/JointState', js, float(t))
+            if stray_at is not None and t >= stray_at:
+                js = JointState(name=list(MODEL.joint_names), position=(q + 0.3).tolist())
+                js.header.stamp = _stamp(1000.0)
+                bag.put('/joint_states', 'sensor_msgs/msg/JointState', js, float(t))
+                stray_at = None
         if k != FAILED:
             hp = PoseWithCovarianceStamped()
             hp.header.stamp = _stamp(t0 + 0.3)
@@ -181,3 +191,64 @@ def test_the_command_line_writes_the_csv_or_says_what_is_wrong(tmp_path: Path, c
     assert 'position error' in capsys.readouterr().out
     assert main([str(tmp_path / 'missing.mcap'), '--no-plots']) == 2
     assert 'missing.mcap' in capsys.readouterr().err
+
+
+def test_a_stray_stamp_only_the_recorder_heard_leaves_the_offline_run_equal_to_the_online_one(tmp_path: Path) -> None:
+    # On main the stray joint state became the re-run's newest sample: every later one was
+    # thrown away, the offline estimate stopped after the first update and disagreed with the
+    # online one (exit 0, a silent wrong answer in the report).
+    tables = direct_run()
+    ev = evaluate_bag(write_bag(tmp_path / 'stray.mcap', online=tables, stray_at=2.2))
+    assert ev.counters['updates'] == ITERATIONS - 1
+    assert ev.max_online_offline_difference < 1e-11
+    assert ev.pairing['future_joint_states'] == 1
+    assert 'future joint states 1' in summary_text(ev)
+
+
+def _chunks(path: Path):
+    from mcap.reader import make_reader
+
+    with path.open('rb') as f:
+        return make_reader(f).get_summary().chunk_indexes
+
+
+@pytest.mark.parametrize('where', ['in a chunk', 'in a message index'])
+def test_a_truncated_bag_is_evaluated_up_to_its_last_complete_chunk_and_says_so(tmp_path: Path, where: str,
+                                                                                capsys) -> None:
+    # As a SIGKILLed recorder leaves it. On main a cut in a message index (the record after each
+    # chunk) made evaluate and calibration_report fail with a raw struct.error traceback.
+    full = write_bag(tmp_path / 'full.mcap', chunk_size=4096)
+    chunks = _chunks(full)
+    c = chunks[2 * len(chunks) // 3]
+    cut = c.chunk_start_offset + (c.chunk_length // 2 if where == 'in a chunk' else c.chunk_length + 5)
+    bag = tmp_path / 'cut.mcap'
+    bag.write_bytes(full.read_bytes()[:cut])
+    ev = evaluate_bag(bag)
+    assert not ev.bag.complete and 0 < ev.bag.message_count
+    assert 1 <= len(ev.rows) - 1 < ITERATIONS                    # some iterations recovered, not all
+    lost = 'the last chunk' if where == 'in a chunk' else 'MESSAGE_INDEX cut'
+    assert ev.bag.loss.startswith(f'bag truncated (cut.mcap was not finished): recovered {ev.bag.message_count} '
+                                  'messages up to t=') and lost in ev.bag.loss
+    assert main([str(bag), '--output', str(tmp_path / 'eval'), '--no-plots']) == 0
+    assert 'bag truncated' in capsys.readouterr().out
+
+    from calibration_bringup.report import main as report_main
+
+    assert report_main(['--bag', str(bag), '--output', str(tmp_path / 'report')]) == 0
+    assert f'**{ev.bag.loss}.**' in (tmp_path / 'report' / 'report.md').read_text()
+
+
+@pytest.mark.parametrize('content, says', [(b'', 'is empty'), (b'PK\x03\x04 a zip file', 'is not an MCAP file')])
+def test_an_empty_or_foreign_file_is_one_line_and_a_failure(tmp_path: Path, capsys, content: bytes,
+                                                           says: str) -> None:
+    # On main both were read as a bag without messages: 'no /body_schema/true message'.
+    bag = tmp_path / 'x.mcap'
+    bag.write_bytes(content)
+    assert main([str(bag), '--no-plots']) == 2
+    err = capsys.readouterr().err
+    assert err == f'evaluate: {bag} {says}' + (" (it starts with b'PK\\x03\\x04 a z')" if content else '') + '\n'
+
+    from calibration_bringup.report import main as report_main
+
+    assert report_main(['--bag', str(bag), '--output', str(tmp_path / 'report')]) == 1
+    assert capsys.readouterr().err.startswith(f'calibration_report: {bag} {says}')

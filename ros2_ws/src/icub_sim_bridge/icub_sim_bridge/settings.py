@@ -40,7 +40,8 @@ class SimSettings:
                                                        'calibration box', array_type='double')
     head_pose_deg: tuple[float, ...] = setting((), "Head joints (neck pitch, roll, yaw, eye tilt, eye pan) [deg], "
                                                "held still; empty = the description's", array_type='double')
-    cameras: tuple[str, ...] = setting(('left', 'right'), 'Eyes to simulate: any of left, right')
+    cameras: tuple[str, ...] = setting((), "Cameras to simulate (the description's eyes or fixed cameras, by "
+                                       "name); empty = every camera of the description")
     image_width: int = setting(0, "Image width [px], at least 16; intrinsics scale with it; 0 = the description's camera",
                                (0, 4096))
     image_height: int = setting(0, "Image height [px], at least 16; 0 = the description's camera", (0, 4096))

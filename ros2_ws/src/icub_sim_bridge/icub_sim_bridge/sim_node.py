@@ -1,4 +1,4 @@
-"""ROS 2 node: the PyBullet iCub right arm with an ArUco-marked hand and two eye cameras.
+"""ROS 2 node: the PyBullet arm of a robot description with an ArUco-marked hand and its cameras.
 
 Steps a :class:`~icub_sim_bridge.world.SimWorld` at a fixed physics step, follows joint
 trajectories at a bounded joint speed, and publishes the simulated sensors in sim time.
@@ -8,15 +8,17 @@ Topics published
 /clock : rosgraph_msgs/Clock
     Sim time, at ``joint_state_rate`` (the node itself runs on it: ``use_sim_time`` is forced on).
 /joint_states : sensor_msgs/JointState
-    The 7 arm joints [rad, rad/s] at ``joint_state_rate`` (sim time).
-/camera/{left,right}/image_raw : sensor_msgs/Image
+    The arm joints [rad, rad/s] at ``joint_state_rate`` (sim time).
+/camera/<name>/image_raw : sensor_msgs/Image
+    One set of camera topics per simulated camera (``cameras``: the iCub's eyes ``left``,
+    ``right``; a fixed camera of the description under its name).
     rgb8 at ``image_rate`` (sim time), sensor-data QoS.
-/camera/{left,right}/camera_info : sensor_msgs/CameraInfo
+/camera/<name>/camera_info : sensor_msgs/CameraInfo
     K, D (plumb_bob, zeros), R = I, P; with every image, reliable + transient local.
-/camera/{left,right}/pose : geometry_msgs/PoseStamped
+/camera/<name>/pose : geometry_msgs/PoseStamped
     Optical frame in ``root_link``; transient local (the head holds still).
 /body_schema/true : std_msgs/Float64MultiArray
-    The simulated robot's real DH table, 7 x 4 (a, d, alpha, offset); transient local;
+    The simulated robot's real DH table, L x 4 (a, d, alpha, offset); transient local;
     published again when the body changes.
 /robot_description : std_msgs/String
     URDF of the real arm (links as :func:`body_schema.urdf.chain_transforms` names the TF
@@ -45,6 +47,7 @@ run's values.
 """
 from __future__ import annotations
 
+import re
 import time
 from typing import Any
 
@@ -67,6 +70,7 @@ from calibration_interfaces.contract import RELIABLE, optical_frame
 from calibration_interfaces.dh_file import read_dh_file
 from calibration_interfaces.messages import matrix_to_pose_msg, table_to_msg
 from calibration_interfaces.node_util import declare_settings, qos_profile, spin_node
+from calibration_interfaces.throttle import KeyedThrottle
 
 from .body_change import parse_body_change
 from .camera import degrade
@@ -89,14 +93,16 @@ class SimNode(Node):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('icub_sim', **kwargs)
+        self._throttle = KeyedThrottle(2.0)
         self.set_parameters([Parameter('use_sim_time', Parameter.Type.BOOL, True)])
         s = self.settings = declare_settings(self, SimSettings, read_only=True)
         self.robot = r = load_robot(s.robot)
-        if r.camera is None or r.eyes is None:
-            raise ValueError(f'robot {r.name!r} needs camera and eyes sections for the simulator')
-        bad = [e for e in s.cameras if e not in r.eyes.links]
+        if r.camera is None or not r.camera_names:
+            raise ValueError(f'robot {r.name!r} needs a camera section and eyes or fixed_cameras for the simulator')
+        cameras = tuple(s.cameras) or r.camera_names
+        bad = [e for e in cameras if e not in r.camera_names]
         if bad:
-            raise ValueError(f'cameras: unknown eyes {bad}; expected any of {sorted(r.eyes.links)}')
+            raise ValueError(f'cameras: unknown cameras {bad}; expected any of {sorted(r.camera_names)}')
 
         # The "real robot": nominal, a DH file, and/or a small seeded perturbation.
         true_dh = read_dh_file(s.true_dh_file, r.n_joints).dh if s.true_dh_file else r.dh.copy()
@@ -108,9 +114,11 @@ class SimNode(Node):
         self.body_change = parse_body_change(s.body_change, r.joint_names) if s.body_change else None
         self.body_changed = False
         self.commands = 0
-        head = np.radians(np.asarray(s.head_pose_deg, dtype=float)) if s.head_pose_deg else r.eyes.head_pose
-        if head.shape != (5,):
-            raise ValueError(f'head_pose_deg needs 5 angles, got {list(s.head_pose_deg)}')
+        head = None   # fixed cameras only: no head
+        if r.eyes is not None:
+            head = np.radians(np.asarray(s.head_pose_deg, dtype=float)) if s.head_pose_deg else r.eyes.head_pose
+            if head.shape != (len(r.eyes.head_joints),):
+                raise ValueError(f'head_pose_deg needs {len(r.eyes.head_joints)} angles, got {list(s.head_pose_deg)}')
         self.world = SimWorld(r, true_dh, marker_dictionary=s.marker_dictionary or None,
                               marker_ids=list(s.marker_ids) or None,
                               marker_side_length=s.marker_side_length or None,
@@ -119,7 +127,7 @@ class SimNode(Node):
             if 0 < px < MIN_IMAGE_PX:
                 raise ValueError(f'{name} {px} px is below {MIN_IMAGE_PX} px (0: the description\'s camera)')
         self.intrinsics = r.camera.scaled(s.image_width or r.camera.width, s.image_height or r.camera.height)
-        self.cameras = {eye: r.camera_pose(eye, head) for eye in s.cameras}
+        self.cameras = {eye: r.camera_pose(eye, head) for eye in cameras}
         q0 = (np.radians(np.asarray(s.initial_positions_deg, dtype=float)) if s.initial_positions_deg
               else r.calibration_box.mean(axis=1))
         q0 = validate_command(self.robot.joint_names, [q0], [], self.robot.joint_names,
@@ -287,7 +295,11 @@ class SimNode(Node):
                                   self.robot.joint_names, self.robot.limits, self.follower.q)
         except CommandError as exc:
             self.follower.stop()
-            self.get_logger().warning(f'rejected /arm/command: {exc}; the arm holds at its present position')
+            # Throttled per reason (numbers aside): a burst of bad commands is not a screenful.
+            text = self._throttle(re.sub(r'[-+.\d]+', '#', str(exc)),
+                                  f'rejected /arm/command: {exc}; the arm holds at its present position')
+            if text is not None:
+                self.get_logger().warning(text)
             return
         duration = self.follower.start(wp)
         self.get_logger().info(f'moving to {np.round(np.degrees(wp.targets[-1]), 1).tolist()} deg '

@@ -1,7 +1,8 @@
-"""Measure how often the hand's markers are detected in an eye camera over a joint box.
+"""Measure how often the hand's markers are detected in a camera over a joint box.
 
-This is how the default head pose and calibration box of the robot description were chosen:
-for uniform random configurations of the box, render the eye image, run
+This is how the default head pose and calibration box of the robot descriptions were chosen
+(the iCub's eye, the UR5e's fixed camera): for uniform random configurations of the box, render
+the camera image, run
 ``cv2.aruco.ArucoDetector`` and count the configurations where at least one of the hand's markers
 is detected. Usage::
 
@@ -73,7 +74,8 @@ def measure_visibility(robot: ArmModel, n: int = 400, seed: int = 0, *, eye: str
         Number of configurations.
     seed : int
         Seed of the configuration draw.
-    eye : {'left', 'right'}
+    eye : str
+        A camera of the description (an eye, or a fixed camera).
     head_pose : array_like, shape (5,), optional
         Head joints [rad]; the description's ``head_pose`` if omitted.
     box : array_like, shape (L, 2), optional
@@ -120,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--robot', default='icub_right_arm', help='robot description name or path')
     ap.add_argument('--n', type=int, default=400, help='number of configurations')
     ap.add_argument('--seed', type=int, default=0)
-    ap.add_argument('--eye', default='left', choices=('left', 'right'))
+    ap.add_argument('--eye', default='left', help="camera name: an eye or a fixed camera of the description")
     ap.add_argument('--head', type=float, nargs=5, metavar='DEG', help='head joints [deg]')
     ap.add_argument('--box-deg', type=float, nargs='+', metavar='DEG',
                     help='joint box as lo hi pairs [deg], one pair per joint')
@@ -138,7 +140,7 @@ def main(argv: list[str] | None = None) -> int:
                              intrinsics=intr)
     dt = time.perf_counter() - t0
     names = ', '.join(f'id {i}: {100 * f:.1f}%' for i, f in zip(res.marker_ids, res.per_marker))
-    print(f'{args.eye} eye, {args.n} configurations (seed {args.seed}), {intr.width}x{intr.height}: '
+    print(f'camera {args.eye}, {args.n} configurations (seed {args.seed}), {intr.width}x{intr.height}: '
           f'at least one marker detected in {100 * res.fraction:.1f}% (+- {100 * res.stderr():.1f}); '
           f'per marker {names}; {dt:.1f} s')
     return 0

@@ -1,4 +1,4 @@
-"""The PyBullet world: iCub right arm built from a DH table, an ArUco-marked hand, eye cameras.
+"""The PyBullet world: an arm built from a DH table, an ArUco-marked hand, its cameras.
 
 Pure module (no rclpy). :class:`SimWorld` owns one ``BulletClient`` in DIRECT mode, so several
 worlds coexist in one process. The arm is generated as URDF by :mod:`body_schema.urdf` from the
@@ -26,7 +26,7 @@ import pybullet as p
 from numpy.typing import ArrayLike, NDArray
 from pybullet_utils import bullet_client
 
-from body_schema.arm_visuals import GREY, HAND_SIZE, WHITE, arm_visuals
+from body_schema.arm_visuals import HAND_SIZE, WHITE, arm_visuals
 from body_schema.markers import aruco_dictionary, marker_corners
 from body_schema.robot import ArmModel, CameraIntrinsics, MarkerPlacement
 from body_schema.urdf import FixedLink, Visual, dh_chain_urdf
@@ -241,15 +241,13 @@ class SimWorld:
         self.set_joint_positions(np.clip(np.zeros(len(names)), self.robot.limits[:, 0], self.robot.limits[:, 1]))
 
     def _build_context(self, head_pose: ArrayLike | None) -> None:
-        """Static torso (around root_link) and a head behind the eyes."""
+        """The description's static scenery (e.g. a torso) and, for eyes, a head behind them."""
         c = self._client
-        torso = [((0.12, 0.15, 0.32), (0.01, 0.0, 0.05), WHITE),     # chest and belly
-                 ((0.10, 0.24, 0.08), (0.0, 0.0, -0.14), GREY)]      # hips
         # No floor: TinyRenderer's cost grows with covered pixels and a floor filling the view
         # halved the frame rate; the light background suits the markers anyway.
-        for size, xyz, rgba in torso:
-            vs = c.createVisualShape(p.GEOM_BOX, halfExtents=[s / 2 for s in size], rgbaColor=rgba)
-            c.createMultiBody(0, -1, vs, basePosition=xyz)
+        for box in self.robot.scenery:
+            vs = c.createVisualShape(p.GEOM_BOX, halfExtents=[s / 2 for s in box.size], rgbaColor=box.rgba)
+            c.createMultiBody(0, -1, vs, basePosition=box.xyz)
         self._head = None
         if self.robot.eyes is not None and 'left' in self.robot.eyes.links:
             self.set_head_pose(self.robot.eyes.head_pose if head_pose is None else head_pose)

@@ -34,10 +34,11 @@ from body_schema.kinematics import rotation_angle_deg
 from body_schema.markers import aruco_dictionary, marker_corners, refine_corners_edges
 from body_schema.noise import NoiseModel, PoseDependentNoise, view_geometry
 from body_schema.robot import ArmModel, MarkerPlacement
+from calibration_interfaces.outcome import FrameStatus
 from calibration_interfaces.parameters import setting
 
 __all__ = [
-    'FUSION_MODES', 'DetectorConfig', 'DetectedMarker', 'MarkerPose', 'HandEstimate',
+    'FUSION_MODES', 'BadInput', 'DetectorConfig', 'DetectedMarker', 'MarkerPose', 'HandEstimate',
     'FrameResult', 'MarkerDetector', 'solve_marker_pose', 'gate_marker',
     'hand_from_marker', 'fuse_estimates', 'refine_joint', 'HandPoseEstimator',
 ]
@@ -47,6 +48,25 @@ __all__ = [
 #: ``weighted``: information-weighted mean of the per-marker hand poses;
 #: ``joint``: one Levenberg-Marquardt PnP over the corners of all markers, hand frame as object.
 FUSION_MODES = ('best', 'weighted', 'joint')
+
+
+class BadInput(ValueError):
+    """An input the detector cannot judge (an image or camera calibration it cannot use): not a
+    scene without markers, so not evidence that the hand is hidden.
+
+    Parameters
+    ----------
+    kind : str
+        What was bad, ``<input>.<field>`` (e.g. ``image.encoding``, ``camera_info.D``): warnings
+        are throttled per kind and the per-frame diagnostic carries it.
+    reason : str
+        Names the bad value.
+    """
+
+    def __init__(self, kind: str, reason: str) -> None:
+        super().__init__(f'{kind}: {reason}')
+        self.kind = kind
+        self.reason = reason
 
 
 @dataclass(frozen=True)
@@ -172,17 +192,26 @@ class FrameResult:
     """Everything one image produced.
 
     ``markers`` are the accepted marker poses (what ``/markers`` carries); ``rejected`` the
-    detected-but-refused ones; ``hand`` is None for a failed detection.
+    detected-but-refused ones; ``hand`` is None for a failed detection; ``bad_input`` is set
+    when the frame could not be judged at all (then there are no markers and no hand).
     """
 
     markers: list[MarkerPose] = field(default_factory=list)
     rejected: list[MarkerPose] = field(default_factory=list)
     hand: HandEstimate | None = None
     seconds: float = 0.0
+    bad_input: BadInput | None = None
 
     @property
     def success(self) -> bool:
         return self.hand is not None
+
+    @property
+    def status(self) -> FrameStatus:
+        """Detected, no marker (a valid frame without the hand), or bad input."""
+        if self.bad_input is not None:
+            return FrameStatus.BAD_INPUT
+        return FrameStatus.DETECTED if self.success else FrameStatus.NO_MARKER
 
 
 # --------------------------------------------------------------------------------------------
@@ -550,12 +579,23 @@ class HandPoseEstimator:
         Returns
         -------
         FrameResult
-            Never raises for image content (garbage gives an empty result); raises ValueError for
-            a malformed ``gray`` array or camera matrix.
+            Never raises for image content (random pixels give an empty result: no marker).
+
+        Raises
+        ------
+        BadInput
+            For a camera matrix or distortion that cannot be used (NaN, zero focal length): every
+            marker would fail to solve, and an empty result would claim the hand was not seen.
+        ValueError
+            For a malformed ``gray`` array.
         """
         k = np.asarray(k, dtype=float)
         if k.shape != (3, 3) or not np.all(np.isfinite(k)) or k[0, 0] <= 0 or k[1, 1] <= 0:
-            raise ValueError(f'k: expected a finite camera matrix with positive focal lengths, got {k.tolist()}')
+            raise BadInput('camera_info.K', f'expected a finite camera matrix with positive focal lengths, '
+                           f'got {k.tolist()}')
+        if dist is not None and not np.all(np.isfinite(np.asarray(dist, dtype=float))):
+            raise BadInput('camera_info.D', f'distortion coefficients must be finite, got '
+                           f'{np.asarray(dist, dtype=float).tolist()}')
         t0 = time.perf_counter()
         poses = [gate_marker(p, self.config) for p in self.marker_poses(gray, k, dist)]
         hand = self.combine(poses, k, dist, root_T_cam)

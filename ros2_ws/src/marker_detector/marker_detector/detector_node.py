@@ -16,10 +16,17 @@ Publishes (reliable, depth 10)
 ------------------------------
 ``/hand_pose`` (geometry_msgs/PoseWithCovarianceStamped): hand frame in root_link, stamp = image
 stamp, 6x6 covariance (x y z rotX rotY rotZ, row-major) from the noise model; only on success.
-``/markers`` (geometry_msgs/PoseArray): every processed frame, the accepted marker poses in the
-camera frame (frame_id and stamp of the image); an empty array is an explicit failed detection.
+``/markers`` (geometry_msgs/PoseArray): every judged frame, the accepted marker poses in the
+camera frame (frame_id and stamp of the image); an empty array is an explicit failed detection
+(a valid frame without the hand). A frame that cannot be judged (bad image, unusable or missing
+camera_info, no camera pose yet) publishes nothing here.
+``/diagnostics`` (diagnostic_msgs/DiagnosticArray): one status per frame, named
+``marker_detector``, hardware_id the eye(s): OK detected, WARN no marker, ERROR bad input with
+the reason (keys: :class:`calibration_interfaces.outcome.FrameKey`).
 With both eyes, one message per stereo pair, expressed in the left camera frame.
 A frame whose stamp equals the previous frame's of the same eye is dropped (same evidence).
+Warnings about bad input are throttled per kind of problem (one per kind every 2 s), not per
+call site, so a burst of one kind does not hide another.
 
 Parameters
 ----------
@@ -40,6 +47,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped
 from numpy.typing import NDArray
 from rclpy.node import Node
@@ -50,11 +58,13 @@ from calibration_interfaces.contract import SENSOR
 from calibration_interfaces.messages import matrix_to_pose_msg, pose_msg_to_matrix
 from calibration_interfaces.node_util import WarnOnce, declare_settings, qos_profile, spin_node
 from calibration_interfaces.noise import NoiseSettings, PoseDependentSettings
+from calibration_interfaces.outcome import DETECTOR_DIAGNOSTIC, FrameStatus, encode_frame
 from calibration_interfaces.parameters import setting
+from calibration_interfaces.throttle import KeyedThrottle
 
-from .detection import DetectorConfig, FrameResult, HandPoseEstimator
-from .image_conversion import ImageConversionError, image_to_gray
-from .stereo import EyeResult, StereoPairer, combine
+from .detection import BadInput, DetectorConfig, FrameResult, HandPoseEstimator
+from .frame import DISTORTION_MODELS, CameraCalibration, calibration_from_info, judge_frame
+from .stereo import EyeResult, StereoPairer, combine, pair_status
 
 __all__ = ['DetectorNode', 'DetectorNodeSettings', 'main']
 
@@ -77,11 +87,16 @@ class _Eye:
 
     def __init__(self, name: str) -> None:
         self.name = name
-        self.k: NDArray[np.float64] | None = None
-        self.dist: NDArray[np.float64] | None = None
-        self.size: tuple[int, int] | None = None
+        # The latest camera_info decides (a camera sends one with every frame): usable, or why not.
+        self.calibration: CameraCalibration | BadInput = BadInput(
+            'camera_info.missing', f'no camera_info for the {name} eye yet')
         self.root_T_cam: NDArray[np.float64] | None = None
         self.last_stamp: tuple[int, int] | None = None
+
+    @property
+    def k(self) -> NDArray[np.float64] | None:
+        """The usable camera matrix (3, 3), None while the calibration is missing or bad."""
+        return self.calibration.k if isinstance(self.calibration, CameraCalibration) else None
 
 
 class DetectorNode(Node):
@@ -98,11 +113,14 @@ class DetectorNode(Node):
         self.root_frame = self.model.root_frame
         self.stereo = s.use_right_eye
         self._warn_once = WarnOnce(self)
+        self._throttle = KeyedThrottle(2.0)
+        self.frames_processed = 0
+        self.frame_counts = {s: 0 for s in FrameStatus}     # published verdicts, for tests and logs
         self.eyes = {name: _Eye(name) for name in (('left', 'right') if self.stereo else ('left',))}
         self.pairer = StereoPairer(tuple(self.eyes), s.stereo_timeout)
-        self.frames_processed = 0
         self.pub_hand = self.create_publisher(PoseWithCovarianceStamped, 'hand_pose', qos_profile('/hand_pose'))
         self.pub_markers = self.create_publisher(PoseArray, 'markers', qos_profile('/markers'))
+        self.pub_diagnostics = self.create_publisher(DiagnosticArray, '/diagnostics', qos_profile('/diagnostics'))
         for name, eye in self.eyes.items():
             self.create_subscription(Image, f'camera/{name}/image_raw',
                                      lambda m, e=eye: self._on_image(e, m), qos_profile(SENSOR))
@@ -120,62 +138,58 @@ class DetectorNode(Node):
 
     # ------------------------------------------------------------------ inputs
 
+    def _warn(self, key: str, text: str) -> None:
+        """A warning throttled per kind of problem (``key``), not per call site."""
+        out = self._throttle(key, text)
+        if out is not None:
+            self.get_logger().warning(out)
+
     def _on_info(self, eye: _Eye, msg: CameraInfo) -> None:
-        k = np.array(msg.k, dtype=float).reshape(3, 3)
-        if not (np.all(np.isfinite(k)) and k[0, 0] > 0 and k[1, 1] > 0):
-            self._warn_once(f'badinfo-{eye.name}', f'{eye.name} camera_info: invalid K {k.tolist()}; ignored')
+        try:
+            eye.calibration = calibration_from_info(msg.k, msg.d, msg.width, msg.height)
+        except BadInput as exc:
+            eye.calibration = exc
+            self._warn(f'{eye.name}.{exc.kind}', f'{eye.name} camera_info rejected: {exc}; its frames are '
+                       f'bad input until a valid one arrives')
             return
-        dist = np.array(msg.d, dtype=float)
-        if dist.size and msg.distortion_model not in ('plumb_bob', 'rational_polynomial'):
+        if len(msg.d) and msg.distortion_model not in DISTORTION_MODELS:
             self._warn_once(f'distmodel-{eye.name}', f'{eye.name} camera_info: distortion model '
                             f'{msg.distortion_model!r} treated as plumb_bob')
-        eye.k, eye.dist = k, (dist if dist.size else np.zeros(5))
-        eye.size = (int(msg.width), int(msg.height))
 
     def _on_pose(self, eye: _Eye, msg: PoseStamped) -> None:
         try:
-            eye.root_T_cam = pose_msg_to_matrix(msg.pose)
+            root_T_cam = pose_msg_to_matrix(msg.pose)
         except ValueError as exc:
-            self.get_logger().warning(f'{eye.name} camera pose ignored: {exc}')
+            self._warn(f'{eye.name}.pose', f'{eye.name} camera pose ignored (the previous one stays): {exc}')
             return
+        eye.root_T_cam = root_T_cam
         if msg.header.frame_id and msg.header.frame_id != self.root_frame:
             self._warn_once(f'poseframe-{eye.name}', f'{eye.name} camera pose is in '
                             f'{msg.header.frame_id!r}, expected {self.root_frame!r}; used as is')
 
     def _on_image(self, eye: _Eye, msg: Image) -> None:
-        if eye.k is None:
-            self._warn_once(f'noinfo-{eye.name}', f'no camera_info for the {eye.name} eye yet; '
-                            f'skipping frames until it arrives')
-            return
-        if eye.root_T_cam is None:
-            self._warn_once(f'nopose-{eye.name}', f'no camera pose for the {eye.name} eye yet; '
-                            f'skipping frames until it arrives')
-            return
         key = _stamp_key(msg.header.stamp)
         if key == eye.last_stamp:
             # A re-sent frame is the same evidence, not a second observation.
             self.get_logger().debug(f'{eye.name} frame {key} already processed; dropped')
             return
-        eye.last_stamp = key
         t0 = time.perf_counter()
-        result = FrameResult()
-        try:
-            gray = image_to_gray(msg)
-            if eye.size is not None and eye.size != (gray.shape[1], gray.shape[0]) and eye.size != (0, 0):
-                raise ImageConversionError(
-                    f'image is {gray.shape[1]} x {gray.shape[0]} but camera_info says '
-                    f'{eye.size[0]} x {eye.size[1]}')
-            result = self.estimator.process(gray, eye.k, eye.dist, eye.root_T_cam)
-        except (ImageConversionError, ValueError) as exc:
-            self.get_logger().warning(f'{eye.name} image at {msg.header.stamp.sec}.'
-                                      f'{msg.header.stamp.nanosec:09d} not usable: {exc}',
-                                      throttle_duration_sec=2.0)
-        except Exception as exc:  # noqa: BLE001 (OpenCV surprises must not kill the node)
-            self.get_logger().error(f'{eye.name} image processing failed: {type(exc).__name__}: {exc}',
-                                    throttle_duration_sec=2.0)
+        if eye.root_T_cam is None:
+            result = FrameResult(bad_input=BadInput('pose.missing', f'no camera pose for the {eye.name} eye yet'))
+        else:
+            try:
+                result = judge_frame(self.estimator, msg, eye.calibration, eye.root_T_cam)
+            except Exception as exc:  # noqa: BLE001 (OpenCV surprises must not kill the node)
+                # Not evidence about the hand either way: a frame nobody could judge.
+                result = FrameResult(bad_input=BadInput(f'internal.{type(exc).__name__}',
+                                                        f'image processing failed: {exc}'))
+        if result.bad_input is None:
+            eye.last_stamp = key       # judged: a re-send of this stamp is no new evidence
+        else:
+            self._warn(f'{eye.name}.{result.bad_input.kind}', f'{eye.name} image at {msg.header.stamp.sec}.'
+                       f'{msg.header.stamp.nanosec:09d} not usable: {result.bad_input}')
         self.frames_processed += 1
-        self.get_logger().debug(f'{eye.name} frame: {len(result.markers)} markers, '
-                                f'{"ok" if result.success else "failed"}, '
+        self.get_logger().debug(f'{eye.name} frame: {len(result.markers)} markers, {result.status.value}, '
                                 f'{1e3 * (time.perf_counter() - t0):.2f} ms')
         item = EyeResult(eye.name, msg.header, result, eye.root_T_cam, time.monotonic())
         entry = self.pairer.add(key, item)
@@ -192,6 +206,10 @@ class DetectorNode(Node):
         # /markers is expressed in the left camera frame (the right eye's too), so one message
         # per stereo pair tells the selector whether the attempt succeeded.
         header, marker_poses, hand = combine(entry)
+        status = pair_status(entry)
+        self._diagnose(header, status, entry)
+        if status is FrameStatus.BAD_INPUT:
+            return            # not a detection attempt: /markers stays silent
         markers = PoseArray()
         markers.header.stamp = header.stamp
         markers.header.frame_id = header.frame_id
@@ -205,6 +223,22 @@ class DetectorNode(Node):
         out.pose.pose = matrix_to_pose_msg(hand.pose)
         out.pose.covariance = [float(v) for v in np.asarray(hand.covariance, dtype=float).reshape(36)]
         self.pub_hand.publish(out)
+
+    def _diagnose(self, header: Any, status: FrameStatus, entry: dict[str, EyeResult]) -> None:
+        self.frame_counts[status] += 1
+        bad = [item.result.bad_input for item in entry.values() if item.result.bad_input is not None]
+        message = {FrameStatus.DETECTED: 'hand detected', FrameStatus.NO_MARKER: 'no marker accepted',
+                   FrameStatus.BAD_INPUT: '; '.join(f'{i.eye}: {i.result.bad_input}' for i in entry.values()
+                                                    if i.result.bad_input is not None)}[status]
+        values = encode_frame(status, header.stamp.sec + header.stamp.nanosec * 1e-9,
+                              ' '.join(b.kind for b in bad) if status is FrameStatus.BAD_INPUT else '')
+        diag = DiagnosticArray()
+        diag.header.stamp = header.stamp
+        diag.header.frame_id = header.frame_id
+        diag.status = [DiagnosticStatus(level=bytes([status.level]), name=DETECTOR_DIAGNOSTIC, message=message,
+                                        hardware_id='+'.join(entry), values=[KeyValue(key=k, value=v)
+                                                                             for k, v in values.items()])]
+        self.pub_diagnostics.publish(diag)
 
 
 def main(args: list[str] | None = None) -> None:

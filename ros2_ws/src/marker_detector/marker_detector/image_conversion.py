@@ -30,21 +30,33 @@ _MAX_SIDE = 1 << 15
 
 
 class ImageConversionError(ValueError):
-    """An image message cannot be converted; the message names the bad field and value."""
+    """An image message cannot be converted; the message names the bad field and value.
+
+    Parameters
+    ----------
+    field : str
+        The offending field (``encoding``, ``height/width``, ``step``, ``data``, ...): the kind of
+        the problem, which the node's warnings are throttled by.
+    reason : str
+    """
+
+    def __init__(self, field: str, reason: str) -> None:
+        super().__init__(f'{field}: {reason}')
+        self.field = field
 
 
 def _field(msg: Any, name: str) -> Any:
     try:
         return getattr(msg, name)
     except AttributeError:
-        raise ImageConversionError(f'image message has no field {name!r}') from None
+        raise ImageConversionError(name, 'image message has no such field') from None
 
 
 def _as_bytes_view(data: Any) -> NDArray[np.uint8]:
     """A flat uint8 view of the payload without copying when the buffer protocol allows."""
     if isinstance(data, np.ndarray):
         if data.dtype != np.uint8:
-            raise ImageConversionError(f'data: expected uint8 values, got dtype {data.dtype}')
+            raise ImageConversionError('data', f'expected uint8 values, got dtype {data.dtype}')
         return data.reshape(-1)
     try:
         return np.frombuffer(data, dtype=np.uint8)
@@ -53,10 +65,10 @@ def _as_bytes_view(data: Any) -> NDArray[np.uint8]:
     try:
         arr = np.asarray(data)
     except (TypeError, ValueError) as exc:
-        raise ImageConversionError(f'data: not a byte sequence ({type(data).__name__})') from exc
+        raise ImageConversionError('data', f'not a byte sequence ({type(data).__name__})') from exc
     if arr.ndim != 1 or (arr.size and (not np.issubdtype(arr.dtype, np.integer)
                                        or arr.min() < 0 or arr.max() > 255)):
-        raise ImageConversionError(f'data: expected a flat sequence of bytes, got '
+        raise ImageConversionError('data', f'expected a flat sequence of bytes, got '
                                    f'{type(data).__name__} of shape {arr.shape}')
     return arr.astype(np.uint8)
 
@@ -83,25 +95,25 @@ def image_to_array(msg: Any, desired_encoding: str = 'passthrough') -> NDArray[n
     """
     encoding = _field(msg, 'encoding')
     if encoding not in ENCODING_CHANNELS:
-        raise ImageConversionError(f'encoding: unsupported {encoding!r}; expected one of '
+        raise ImageConversionError('encoding', f'unsupported {encoding!r}; expected one of '
                                    f'{sorted(ENCODING_CHANNELS)}')
     if desired_encoding != 'passthrough' and desired_encoding not in ENCODING_CHANNELS:
-        raise ImageConversionError(f'desired_encoding: unsupported {desired_encoding!r}')
+        raise ImageConversionError('desired_encoding', f'unsupported {desired_encoding!r}')
     height, width, step = (_field(msg, k) for k in ('height', 'width', 'step'))
     for name, v in (('height', height), ('width', width), ('step', step)):
         if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
-            raise ImageConversionError(f'{name}: expected an integer, got {v!r}')
+            raise ImageConversionError(name, f'expected an integer, got {v!r}')
     if not (0 < height <= _MAX_SIDE and 0 < width <= _MAX_SIDE):
-        raise ImageConversionError(f'height/width: expected 1..{_MAX_SIDE} pixels, '
+        raise ImageConversionError('height/width', f'expected 1..{_MAX_SIDE} pixels, '
                                    f'got {height} x {width}')
     channels = ENCODING_CHANNELS[encoding]
     row = width * channels
     if step < row:
-        raise ImageConversionError(f'step: {step} bytes is less than a row of {width} x {channels} '
+        raise ImageConversionError('step', f'{step} bytes is less than a row of {width} x {channels} '
                                    f'= {row} bytes for {encoding}')
     buf = _as_bytes_view(_field(msg, 'data'))
     if buf.size != step * height:
-        raise ImageConversionError(f'data: length {buf.size} bytes, expected step * height = '
+        raise ImageConversionError('data', f'length {buf.size} bytes, expected step * height = '
                                    f'{step} * {height} = {step * height}')
     img = buf.reshape(height, step)[:, :row]
     img = img.reshape(height, width, channels) if channels > 1 else img
@@ -140,17 +152,17 @@ def array_to_image_fields(array: NDArray[np.uint8], encoding: str = 'rgb8') -> d
         ``data`` is ``bytes`` (tightly packed rows, ``step = W * channels``).
     """
     if encoding not in ENCODING_CHANNELS:
-        raise ImageConversionError(f'encoding: unsupported {encoding!r}; expected one of '
+        raise ImageConversionError('encoding', f'unsupported {encoding!r}; expected one of '
                                    f'{sorted(ENCODING_CHANNELS)}')
     a = np.asarray(array)
     if a.dtype != np.uint8:
-        raise ImageConversionError(f'array: expected dtype uint8, got {a.dtype}')
+        raise ImageConversionError('array', f'expected dtype uint8, got {a.dtype}')
     channels = ENCODING_CHANNELS[encoding]
     if channels == 1 and a.ndim == 3 and a.shape[2] == 1:
         a = a[:, :, 0]
     want = 2 if channels == 1 else 3
     if a.ndim != want or (channels > 1 and a.shape[2] != channels) or 0 in a.shape:
-        raise ImageConversionError(f'array: shape {a.shape} does not fit {encoding} '
+        raise ImageConversionError('array', f'shape {a.shape} does not fit {encoding} '
                                    f'({"(H, W)" if channels == 1 else "(H, W, 3)"})')
     h, w = a.shape[:2]
     return {'height': int(h), 'width': int(w), 'encoding': encoding, 'is_bigendian': 0,

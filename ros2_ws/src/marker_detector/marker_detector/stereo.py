@@ -15,9 +15,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from calibration_interfaces.outcome import FrameStatus
+
 from .detection import FrameResult, HandEstimate, fuse_estimates
 
-__all__ = ['EyeResult', 'StereoPairer', 'combine']
+__all__ = ['EyeResult', 'StereoPairer', 'combine', 'pair_status']
 
 
 @dataclass(frozen=True)
@@ -104,3 +106,13 @@ def combine(entry: Mapping[str, EyeResult], ref: str = 'left') -> tuple[Any, lis
             hands.append(item.result.hand)
     hand = (fuse_estimates(hands) if len(hands) > 1 else hands[0]) if hands else None
     return entry[ref].header, markers, hand
+
+
+def pair_status(entry: Mapping[str, EyeResult]) -> FrameStatus:
+    """The verdict of one stamp's results: detected if any eye found the hand, no marker only if
+    every eye judged a valid frame without it, bad input otherwise (an eye that could not judge
+    its frame cannot vouch that the hand was hidden)."""
+    statuses = {item.result.status for item in entry.values()}
+    if FrameStatus.DETECTED in statuses:
+        return FrameStatus.DETECTED
+    return FrameStatus.NO_MARKER if statuses == {FrameStatus.NO_MARKER} else FrameStatus.BAD_INPUT

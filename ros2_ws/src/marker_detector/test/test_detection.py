@@ -249,7 +249,7 @@ def test_bad_arrays_and_configs_raise(model) -> None:
     est = HandPoseEstimator(model, PoseDependentNoise())
     with pytest.raises(ValueError, match='gray'):
         est.process(np.zeros((240, 320, 3), np.uint8), K)
-    with pytest.raises(ValueError, match='k'):
+    with pytest.raises(ValueError, match='camera_info.K'):
         est.process(np.zeros((240, 320), np.uint8), np.zeros((3, 3)))
     with pytest.raises(ValueError, match='fusion'):
         DetectorConfig(fusion='median')

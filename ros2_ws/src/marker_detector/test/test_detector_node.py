@@ -5,6 +5,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import CameraInfo, Image
@@ -14,6 +15,7 @@ from body_schema.kinematics import rotation_angle_deg
 from body_schema.noise import PoseDependentNoise, view_geometry
 from calibration_interfaces.messages import matrix_to_pose_msg, pose_msg_to_matrix
 from calibration_interfaces.node_util import qos_profile
+from calibration_interfaces.outcome import DETECTOR_DIAGNOSTIC, FrameReport, FrameStatus, decode_frame
 from marker_detector.detector_node import DetectorNode
 from marker_detector.image_conversion import array_to_image_fields
 from marker_detector.synthetic import look_at_pose, render_markers
@@ -83,9 +85,9 @@ class Camera:
                               noise_sigma=1.0, seed=1)
         return np.repeat(gray[..., None], 3, axis=2)
 
-    def publish_image(self, rgb: np.ndarray | None = None, sec: int = 1, **override: Any) -> None:
+    def publish_image(self, rgb: np.ndarray | None = None, sec: int = 1, nanosec: int = 0, **override: Any) -> None:
         msg = Image()
-        msg.header.stamp.sec = sec
+        msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nanosec
         msg.header.frame_id = f'{self.eye}_eye_optical'
         if rgb is not None:
             for k, v in array_to_image_fields(rgb, 'rgb8').items():
@@ -150,33 +152,101 @@ def test_detects_hand_and_publishes_contract(ros: Any, model) -> None:
     np.testing.assert_allclose(pose_msg_to_matrix(marker.poses[0])[:3, 3], cam_T_m[:3, 3], atol=0.006)
 
 
-def test_bad_and_empty_frames_are_failed_outcomes(ros: Any, model) -> None:
+class _Logged:
+    """Records what the node logs (a stand-in for its rclpy logger)."""
+
+    def __init__(self) -> None:
+        self.warnings: list[str] = []
+
+    def warning(self, text: str, **_: Any) -> None:
+        self.warnings.append(text)
+
+    error = warning
+
+    def info(self, text: str, **_: Any) -> None:
+        pass
+
+    debug = info
+
+
+def test_bad_input_is_not_a_failed_detection(ros: Any, model, monkeypatch) -> None:
+    """An empty or random scene is an explicit failed detection (empty /markers, WARN); a bad
+    image, a missing or unusable camera_info, a missing camera pose publish no /markers and an
+    ERROR diagnostic naming the problem, and every distinct problem is logged (on main they all
+    came out as an empty /markers and a global throttle hid half of them)."""
     cam, probe = Camera(ros, model), Probe(ros)
+    diags: list[DiagnosticArray] = []
+    probe.node.create_subscription(DiagnosticArray, '/diagnostics', diags.append, 100)
     det = _detector(ros, noise_model='constant')
+    logged = _Logged()
+    monkeypatch.setattr(det, 'get_logger', lambda: logged)
     _wait_connected(ros, cam, det, probe)
-    # No camera_info or pose yet: frames are skipped (no outcome), with one warning.
-    cam.publish_image(np.zeros((240, 320, 3), np.uint8), sec=1)
-    ros.spin_until(lambda: 'noinfo-left' in det._warn_once.keys, 5.0, 'missing camera_info warning')
-    assert probe.markers == []
+    ros.spin_until(lambda: det.pub_diagnostics.get_subscription_count() >= 1, 10.0, 'diagnostics discovery')
+
+    def verdicts() -> dict[tuple[int, int], FrameReport]:
+        out = {}
+        for d in diags:
+            for s in d.status:
+                if s.name == DETECTOR_DIAGNOSTIC:
+                    r = decode_frame({v.key: v.value for v in s.values})
+                    assert s.level == bytes([r.status.level])
+                    out[(d.header.stamp.sec, d.header.stamp.nanosec)] = r
+        return out
+
+    tries = iter(range(1, 10**6))
+
+    def send(stamp: int, **kw: Any) -> FrameReport:
+        # Best effort may drop a frame: re-send, each try with its own stamp (a re-sent stamp
+        # would be judged anew once its inputs are fixed).
+        ros.spin_until(lambda: (cam.publish_image(sec=stamp, nanosec=next(tries), **kw),
+                                any(k[0] == stamp for k in verdicts()))[1], 5.0, f'verdict on frame {stamp}')
+        return next(r for k, r in verdicts().items() if k[0] == stamp)
+
+    zeros = np.zeros((240, 320, 3), np.uint8)
+    # No camera pose, then no camera_info yet: bad input, not "not visible".
+    assert send(1, rgb=zeros).kind == 'pose.missing'
     cam.publish_pose()
     ros.spin_until(lambda: det.eyes['left'].root_T_cam is not None, 5.0, 'camera pose')
+    assert send(2, rgb=zeros).kind == 'camera_info.missing'
     ros.spin_until(lambda: (cam.publish_info(), det.eyes['left'].k is not None)[1], 5.0, 'camera_info')
+    good = [dict(rgb=zeros), dict(rgb=np.random.default_rng(0).integers(0, 256, (240, 320, 3), dtype=np.uint8))]
+    for i, kw in enumerate(good):
+        assert send(10 + i, **kw).status is FrameStatus.NO_MARKER
     bad = [
-        dict(rgb=np.zeros((240, 320, 3), np.uint8)),                              # empty scene
-        dict(rgb=np.random.default_rng(0).integers(0, 256, (240, 320, 3), dtype=np.uint8)),
-        dict(rgb=np.zeros((240, 320, 3), np.uint8), encoding='rgba16'),           # bad encoding
-        dict(rgb=np.zeros((240, 320, 3), np.uint8), data=b'\x00' * 100),          # truncated
-        dict(rgb=np.zeros((240, 320, 3), np.uint8), step=10),                     # bad step
-        dict(rgb=None),                                                           # empty message
-        dict(rgb=np.zeros((120, 160, 3), np.uint8)),                              # size != info
+        (dict(rgb=zeros, encoding='rgba16'), 'image.encoding'),
+        (dict(rgb=zeros, data=b'\x00' * 100), 'image.data'),        # truncated
+        (dict(rgb=zeros, step=10), 'image.step'),
+        (dict(rgb=None), 'image.encoding'),                          # empty message
+        (dict(rgb=np.zeros((120, 160, 3), np.uint8)), 'image.size'),  # size != camera_info
     ]
-    for i, kw in enumerate(bad):
-        stamp = 100 + i
-        ros.spin_until(lambda: (cam.publish_image(sec=stamp, **kw),
-                                any(m.header.stamp.sec == stamp for m in probe.markers))[1],
-                       5.0, f'failed outcome for bad frame {i}')
-    assert all(len(m.poses) == 0 for m in probe.markers)
-    assert probe.hands == []
+    for i, (kw, kind) in enumerate(bad):
+        r = send(100 + i, **kw)
+        assert (r.status, r.kind) == (FrameStatus.BAD_INPUT, kind)
+    # A camera_info with NaN distortion, then one with a zero K: refused, frames are bad input.
+    for i, (field, value, kind) in enumerate((('d', [float('nan')] + [0.0] * 4, 'camera_info.D'),
+                                              ('k', [0.0] * 9, 'camera_info.K'))):
+        original = cam.publish_info
+
+        def publish_bad(field=field, value=value) -> None:
+            msg = CameraInfo(width=320, height=240, distortion_model='plumb_bob', d=[0.0] * 5,
+                             k=model.camera.K.reshape(-1).tolist())
+            setattr(msg, field, value)
+            cam.info.publish(msg)
+        ros.spin_until(lambda: (publish_bad(), det.eyes['left'].k is None)[1], 5.0, f'bad {kind} taken')
+        r = send(200 + i, rgb=zeros)
+        assert (r.status, r.kind) == (FrameStatus.BAD_INPUT, kind)
+        ros.spin_until(lambda: (original(), det.eyes['left'].k is not None)[1], 5.0, 'good camera_info again')
+    ros.spin_for(0.2)
+    bad_stamps = {k for k, r in verdicts().items() if r.status is FrameStatus.BAD_INPUT}
+    assert {k[0] for k in bad_stamps} >= {1, 2} | {100 + i for i in range(len(bad))} | {200, 201}
+    published = {(m.header.stamp.sec, m.header.stamp.nanosec) for m in probe.markers}
+    assert not published & bad_stamps, f'bad frames reached /markers: {sorted(published & bad_stamps)}'
+    assert {k[0] for k in published} >= {10, 11}
+    assert all(len(m.poses) == 0 for m in probe.markers) and probe.hands == []
+    # Every distinct problem was logged, whatever the order and however fast they came.
+    for kind in ('pose.missing', 'camera_info.missing', 'camera_info.D', 'camera_info.K',
+                 *(k for _, k in bad)):
+        assert any(f'{kind}:' in w for w in logged.warnings), (kind, logged.warnings)
     assert det.context.ok()
 
 

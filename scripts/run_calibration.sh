@@ -33,8 +33,8 @@ Runs one online calibration of a simulated arm (the iCub right arm by default) a
                     (default: a free one in 100-199; discovery is localhost-only)
   --timeout SEC     give up after this many wall seconds (default: 60 + 20 per iteration)
   --max-timeouts F  fail a run whose iterations ended 'timeout' in more than this fraction (default: 0.2)
-  --max-disagreement MM  fail a run whose offline re-run ends more than MM mm (position error) or
-                    MM/10 deg away from the online estimate (default: 0.5)
+  --max-dh-difference D  fail a run whose offline re-run ends with a DH table more than D (m or rad)
+                    away from the online estimate's in any parameter (default: 1e-4)
   --viz             serve the live 3D view (calibration_viz) and print its URL
   --viz-port N      its port (default: 8080)
   -h, --help        this text
@@ -57,13 +57,13 @@ is_number() { [[ "$1" =~ ^[0-9]*\.?[0-9]+$ ]]; }
 robot=icub_right_arm; strategy=al; iterations=50; seed=1; output=results/run; noise=pose_dependent; rtf=1.0; estimator=map
 body_change=""; body_change_at=""; overwrite=0; resume=""
 image_size=""; record_images=1; domain_id=""; timeout=""; viz=0; viz_port=8080
-max_timeouts=0.2; max_disagreement=0.5
+max_timeouts=0.2; max_dh_difference=1e-4
 given=()   # run-defining options on the command line (a resumed run keeps its own)
 while [ $# -gt 0 ]; do
   case "$1" in
     --robot|--strategy|--iterations|--seed|--noise|--estimator|--body-change|--body-change-at|--image-size)
       need_value "$@"; given+=("$1") ;;&
-    --output|--resume|--rtf|--domain-id|--timeout|--viz-port|--max-timeouts|--max-disagreement)
+    --output|--resume|--rtf|--domain-id|--timeout|--viz-port|--max-timeouts|--max-dh-difference)
       need_value "$@" ;;&
     --robot) robot=$2; shift 2 ;;
     --strategy) strategy=$2; shift 2 ;;
@@ -82,7 +82,7 @@ while [ $# -gt 0 ]; do
     --domain-id) domain_id=$2; shift 2 ;;
     --timeout) timeout=$2; shift 2 ;;
     --max-timeouts) max_timeouts=$2; shift 2 ;;
-    --max-disagreement) max_disagreement=$2; shift 2 ;;
+    --max-dh-difference) max_dh_difference=$2; shift 2 ;;
     --viz) viz=1; shift ;;
     --viz-port) viz_port=$2; shift 2 ;;
     -h|--help) usage; exit 0 ;;
@@ -120,7 +120,8 @@ timeout=${timeout:-$((60 + 20 * iterations))}
 [ -z "$domain_id" ] || { [[ "$domain_id" =~ ^[0-9]+$ ]] && (( domain_id <= 232 )); } || \
   die "--domain-id must be an integer 0-232, got '$domain_id'"
 [[ "$max_timeouts" =~ ^(0(\.[0-9]*)?|1(\.0*)?|\.[0-9]+)$ ]] || die "--max-timeouts must be a fraction 0-1, got '$max_timeouts'"
-is_number "$max_disagreement" || die "--max-disagreement must be a non-negative number (mm), got '$max_disagreement'"
+[[ "$max_dh_difference" =~ ^[0-9]*\.?[0-9]+([eE][-+]?[0-9]+)?$ ]] || \
+  die "--max-dh-difference must be a non-negative number (m or rad), got '$max_dh_difference'"
 body_change_at=${body_change_at:-$(( (iterations + 1) / 2 + 1 ))}
 if [ -n "$body_change" ]; then
   [[ "$body_change_at" =~ ^[1-9][0-9]*$ ]] || die "--body-change-at must be a positive integer, got '$body_change_at'"
@@ -370,4 +371,4 @@ $calibration_cmd --bag "$bag" --output "$output" --wall-seconds "$wall" \
 # The run's health: a run with many timeouts (a stalled estimator) or whose offline re-run
 # disagrees with the online estimate is not a result to trust, even if it finished.
 python3 -m calibration_bringup.run_check "$output" --max-timeouts "$max_timeouts" \
-  --max-disagreement "$max_disagreement" ${resume:+--resumed}
+  --max-dh-difference "$max_dh_difference" ${resume:+--resumed}

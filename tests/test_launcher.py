@@ -74,6 +74,7 @@ def _start(out: Path, *args: str) -> subprocess.Popen:
     (['--rtf', 'fast'], '--rtf'),
     (['--domain-id', '233'], '--domain-id'),
     (['--max-timeouts', '1.5'], '--max-timeouts'),
+    (['--max-dh-difference', 'small'], '--max-dh-difference'),
     (['--resume', '/nonexistent-run-dir'], '--resume'),
 ])
 def test_a_bad_option_exits_2_with_one_line_naming_it_and_starts_nothing(tmp_path: Path, args, named) -> None:
@@ -132,7 +133,7 @@ def test_two_runs_at_once_get_their_own_domains_and_a_forced_shared_domain_is_re
     # Two graphs at once on 2 loaded cores: the offline re-run can then pair the recorded data
     # differently from the live estimator (the joint buffer's handling of time, another part of
     # issue 17) and the health check rightly fails the run; here only the isolation is checked.
-    lenient = ['--max-disagreement', '1000']
+    lenient = ['--max-dh-difference', '1000']
     a = _start(tmp_path / 'a', '--iterations', '2', *FAST, *lenient)
     b = _start(tmp_path / 'b', '--iterations', '2', *FAST, *lenient)
     _wait_for(lambda: (tmp_path / 'a' / 'run.ids').exists(), 60, 'run a to take its domain')

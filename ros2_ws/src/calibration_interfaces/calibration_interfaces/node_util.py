@@ -34,6 +34,8 @@ __all__ = ['qos_profile', 'descriptor', 'declare_settings', 'WarnOnce', 'message
 
 #: Exit status of a node stopped by :class:`RunGuard`.
 RUN_CONFLICT_STATUS = 3
+#: Wall seconds a node stopped by :class:`RunGuard` keeps its run id published before it exits.
+LINGER_S = 5.0
 
 
 def qos_profile(spec: QosSpec | str, depth: int | None = None) -> QoSProfile:
@@ -158,8 +160,9 @@ class RunGuard:
     Two graphs on one ROS domain would otherwise mix their messages silently (joint states of one
     robot paired with hand poses of the other). On the first foreign id, or a second node of this
     node's name (a graph started without run ids), the guard logs an error, records what it saw
-    in :attr:`conflict` and shuts the node's context down, so no callback takes another message;
-    :func:`spin_node` then exits with :data:`RUN_CONFLICT_STATUS`.
+    in :attr:`conflict`, destroys the node's other subscriptions and timers (it takes no more
+    input and drives nothing) and shuts the context down :data:`LINGER_S` later, once its own id
+    has reached the other run; :func:`spin_node` then exits with :data:`RUN_CONFLICT_STATUS`.
 
     Parameters
     ----------
@@ -200,7 +203,18 @@ class RunGuard:
         self.node.get_logger().error(
             f'{what} is on ROS_DOMAIN_ID {self.domain_id}; this node of run {self.run_id!r} stops rather '
             'than mix the two runs\' messages (give each run its own domain)')
-        self.node.context.try_shutdown()
+        # Stop taking input now, but linger before shutting the context down: our latched id must
+        # reach the other run too (a reader that matched us later would otherwise find it gone),
+        # so that both runs stop, not only the one that noticed first.
+        for sub in list(self.node.subscriptions):
+            if sub is not self._sub:
+                self.node.destroy_subscription(sub)
+        for timer in list(self.node.timers):
+            if timer is not self._timer:
+                self.node.destroy_timer(timer)
+        self._timer.cancel()
+        self._linger = self.node.create_timer(LINGER_S, self.node.context.try_shutdown,
+                                              clock=Clock(clock_type=ClockType.STEADY_TIME))
 
 
 def spin_node(make_node: Callable[[], Node], args: list[str] | None = None,

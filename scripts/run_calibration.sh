@@ -17,7 +17,10 @@ Runs one online calibration of a simulated arm (the iCub right arm by default) a
   --strategy S      random | al | ucsal | ccsal                         (default: al)
   --iterations N    measurement attempts (selector iterations)          (default: 50)
   --seed S          seed of the real robot, the initial guess and the selector (default: 1)
-  --output DIR      where the bag, logs, model and report go            (default: results/run)
+  --output DIR      where the bag, logs, model and report go; new or empty (default: results/run)
+  --overwrite       reuse a non-empty DIR: the previous run's outputs are removed first
+  --resume DIR      continue the interrupted run in DIR with its settings, the estimator's checkpoint
+                    and the selector's record; the new part of the bag goes to DIR/run.<k>.mcap
   --noise M         pose_dependent | constant (the paper's CN baseline) (default: pose_dependent)
   --estimator E     map (online MAP smoother) | ekf (the paper's filter) (default: map)
   --body-change SPEC  change the real robot mid-run, e.g. 'r_wrist_prosup.d+0.010 r_shoulder_yaw.offset+3'
@@ -29,28 +32,50 @@ Runs one online calibration of a simulated arm (the iCub right arm by default) a
   --rtf F           simulated seconds per wall second; 0 = as fast as possible (default: 1.0)
   --image-size WxH  camera resolution, intrinsics scale with it         (default: the description's camera)
   --no-images       do not record the camera images (smaller bag)
-  --domain-id N     ROS_DOMAIN_ID of the run (default: random in 100-199, localhost only)
+  --domain-id N     ROS_DOMAIN_ID 0-232; refused if another run holds it or a graph talks on it
+                    (default: a free one in 100-199; discovery is localhost-only)
   --timeout SEC     give up after this many wall seconds (default: 60 + 20 per iteration)
+  --max-timeouts F  fail a run whose iterations ended 'timeout' in more than this fraction (default: 0.2)
+  --max-dh-difference D  fail a run whose offline re-run ends with a DH table more than D (m or rad)
+                    away from the online estimate's in any parameter (default: 1e-4)
   --viz             serve the live 3D view (calibration_viz) and print its URL
   --viz-port N      its port (default: 8080)
   -h, --help        this text
 
 Writes DIR/calibration.mcap, DIR/report.md (+ PNG plots, metrics.csv), DIR/model/ (calibrated
-DH YAML and URDF), DIR/progress.jsonl and DIR/logs/<node>.log. Exit status 0 on a finished run;
-1 with the failing node's log tail if a node dies or the run times out.
+DH YAML and URDF), DIR/progress.jsonl, DIR/checkpoint.npz, DIR/run.env (settings, run id, domain)
+and DIR/logs/<node>.log. Exit status 0 on a finished, healthy run; 1 if a node dies (with its log
+tail), the run times out, a node had to be killed, or the health check fails (too many timeouts,
+offline re-run disagreeing with the online estimate); 2 on a bad option; 130 on Ctrl-C. Every
+node started is stopped on every exit path (SIGINT, then SIGKILL of its process group).
 EOF
 }
 
+die() { echo "run_calibration: $*" >&2; exit 2; }
+need_value() {  # need_value FLAG ARGS...: the flag's value is the next word, not another flag
+  [ $# -ge 2 ] && [[ "$2" != --* ]] || die "$1 needs a value (see --help)"
+}
+is_number() { [[ "$1" =~ ^[0-9]*\.?[0-9]+$ ]]; }
+
 robot=icub_right_arm; strategy=al; iterations=50; seed=1; output=results/run; noise=pose_dependent; rtf=1.0; estimator=map
-body_change=""; body_change_at=""; camera_error=""; marker_error=""
+body_change=""; body_change_at=""; camera_error=""; marker_error=""; overwrite=0; resume=""
 image_size=""; record_images=1; domain_id=""; timeout=""; viz=0; viz_port=8080
+max_timeouts=0.2; max_dh_difference=1e-4
+given=()   # run-defining options on the command line (a resumed run keeps its own)
 while [ $# -gt 0 ]; do
   case "$1" in
+    --robot|--strategy|--iterations|--seed|--noise|--estimator|--body-change|--body-change-at|--image-size|\
+    --camera-error|--marker-error)
+      need_value "$@"; given+=("$1") ;;&
+    --output|--resume|--rtf|--domain-id|--timeout|--viz-port|--max-timeouts|--max-dh-difference)
+      need_value "$@" ;;&
     --robot) robot=$2; shift 2 ;;
     --strategy) strategy=$2; shift 2 ;;
     --iterations) iterations=$2; shift 2 ;;
     --seed) seed=$2; shift 2 ;;
     --output) output=$2; shift 2 ;;
+    --overwrite) overwrite=1; shift ;;
+    --resume) resume=$2; shift 2 ;;
     --noise) noise=$2; shift 2 ;;
     --estimator) estimator=$2; shift 2 ;;
     --body-change) body_change=$2; shift 2 ;;
@@ -59,17 +84,27 @@ while [ $# -gt 0 ]; do
     --camera-error) camera_error=$2; shift 2 ;;
     --marker-error) marker_error=$2; shift 2 ;;
     --image-size) image_size=$2; shift 2 ;;
-    --no-images) record_images=0; shift ;;
+    --no-images) record_images=0; given+=("$1"); shift ;;
     --domain-id) domain_id=$2; shift 2 ;;
     --timeout) timeout=$2; shift 2 ;;
+    --max-timeouts) max_timeouts=$2; shift 2 ;;
+    --max-dh-difference) max_dh_difference=$2; shift 2 ;;
     --viz) viz=1; shift ;;
     --viz-port) viz_port=$2; shift 2 ;;
     -h|--help) usage; exit 0 ;;
-    *) echo "run_calibration: unknown option '$1' (see --help)" >&2; exit 2 ;;
+    *) die "unknown option '$1' (see --help)" ;;
   esac
 done
 
-die() { echo "run_calibration: $*" >&2; exit 2; }
+if [ -n "$resume" ]; then
+  # A resumed run is the same run: its settings come from its run.env, not from this command line.
+  [ "${#given[@]}" -eq 0 ] || die "--resume continues a run with its own settings; drop ${given[*]}"
+  [ "$overwrite" = 0 ] || die "--resume and --overwrite exclude each other"
+  [ -f "$resume/run.env" ] || die "--resume: '$resume' holds no run.env (not a run_calibration output directory)"
+  # shellcheck disable=SC1091  # written by this script with printf %q
+  source "$resume/run.env"
+  output=$resume
+fi
 case "$strategy" in random|al|ucsal|ccsal) ;; *) die "--strategy must be random, al, ucsal or ccsal, got '$strategy'" ;; esac
 case "$noise" in pose_dependent|constant) ;; *) die "--noise must be pose_dependent or constant, got '$noise'" ;; esac
 case "$estimator" in map|ekf) ;; *) die "--estimator must be map or ekf, got '$estimator'" ;; esac
@@ -78,17 +113,34 @@ case "$estimator" in map|ekf) ;; *) die "--estimator must be map or ekf, got '$e
 [[ -n "$robot" ]] || die "--robot must name a robot description"
 size_args=(); size_text="the description's image size"
 if [ -n "$image_size" ]; then
-  [[ "$image_size" =~ ^([0-9]+)x([0-9]+)$ ]] || die "--image-size must look like 640x480, got '$image_size'"
+  [[ "$image_size" =~ ^([1-9][0-9]*)x([1-9][0-9]*)$ ]] || \
+    die "--image-size must look like 640x480 (positive sizes), got '$image_size'"
   size_args=(-p "image_width:=${BASH_REMATCH[1]}" -p "image_height:=${BASH_REMATCH[2]}")
   size_text=$image_size
 fi
-[[ "$rtf" =~ ^[0-9]*\.?[0-9]+$ ]] || die "--rtf must be a non-negative number, got '$rtf'"
+is_number "$rtf" || die "--rtf must be a non-negative number, got '$rtf'"
 [[ "$rtf" == *.* ]] || rtf="$rtf.0"   # a double parameter: '4' would be declared an integer and refused
 [[ "$viz_port" =~ ^[0-9]+$ ]] && (( viz_port >= 1 && viz_port <= 65535 )) || die "--viz-port must be a port number, got '$viz_port'"
+[ -z "$timeout" ] || [[ "$timeout" =~ ^[1-9][0-9]*$ ]] || die "--timeout must be a positive integer (seconds), got '$timeout'"
 timeout=${timeout:-$((60 + 20 * iterations))}
+[ -z "$domain_id" ] || { [[ "$domain_id" =~ ^[0-9]+$ ]] && (( domain_id <= 232 )); } || \
+  die "--domain-id must be an integer 0-232, got '$domain_id'"
+[[ "$max_timeouts" =~ ^(0(\.[0-9]*)?|1(\.0*)?|\.[0-9]+)$ ]] || die "--max-timeouts must be a fraction 0-1, got '$max_timeouts'"
+[[ "$max_dh_difference" =~ ^[0-9]*\.?[0-9]+([eE][-+]?[0-9]+)?$ ]] || \
+  die "--max-dh-difference must be a non-negative number (m or rad), got '$max_dh_difference'"
 body_change_at=${body_change_at:-$(( (iterations + 1) / 2 + 1 ))}
-[[ "$body_change_at" =~ ^[1-9][0-9]*$ ]] || die "--body-change-at must be a positive integer, got '$body_change_at'"
-[ -n "$body_change" ] || body_change_at=0
+if [ -n "$body_change" ]; then
+  [[ "$body_change_at" =~ ^[1-9][0-9]*$ ]] || die "--body-change-at must be a positive integer, got '$body_change_at'"
+else
+  body_change_at=0
+fi
+# The output directory: new or empty, unless the run resumes it or the user asked to overwrite it
+# (then only what a run writes is removed, so no stale report or model sits beside the new bag).
+if [ -z "$resume" ] && [ -d "$output" ] && [ -n "$(ls -A "$output")" ]; then
+  [ "$overwrite" = 1 ] || die "--output '$output' is not empty (--overwrite replaces the previous run, --resume '$output' continues it)"
+  (cd "$output" && rm -rf -- calibration.mcap run.*.mcap report.md metrics.csv ./*.png progress.jsonl \
+     checkpoint.npz run.env run.ids model logs)
+fi
 
 # --- Where the executables and parameter files are ----------------------------------------
 repo=$(cd "$(dirname "$0")/.." && pwd)
@@ -126,59 +178,123 @@ if [ "$viz" = 1 ]; then
   viz_config=$(share_dir calibration_viz)/config
 fi
 
+
+# --- Every started node is stopped on every exit path ---------------------------------------
+declare -A pid=()
+order=()
+killed=()   # nodes stop had to SIGKILL: their files and exports may be missing
+alive() { [ -n "${pid[$1]:-}" ] && kill -0 "${pid[$1]}" 2>/dev/null; }
+stop() {    # stop NAME...: SIGINT to each process group (nodes finish files and exports), SIGKILL after 15 s
+  local name t any
+  for name in "$@"; do alive "$name" && kill -INT -- "-${pid[$name]}" 2>/dev/null || true; done
+  for ((t = 0; t < 150; t++)); do    # one deadline for all of them
+    any=0
+    for name in "$@"; do alive "$name" && { any=1; break; }; done
+    (( any )) || break
+    sleep 0.1
+  done
+  for name in "$@"; do
+    if alive "$name"; then
+      echo "run_calibration: $name did not stop on SIGINT within 15 s; killed" >&2
+      kill -KILL -- "-${pid[$name]}" 2>/dev/null || true
+      killed+=("$name")
+    fi
+    [ -z "${pid[$name]:-}" ] || wait "${pid[$name]}" 2>/dev/null || true
+  done
+}
+cleanup() { # the EXIT trap, so also after `set -e`/`set -u` errors: stop what still runs, release the domain
+  local rc=$?
+  trap '' INT TERM HUP      # a second Ctrl-C must not cut the cleanup short and orphan a node
+  [ "${#order[@]}" -eq 0 ] || stop "${order[@]}"
+  if (( rc == 0 )) && [ "${#killed[@]}" -gt 0 ]; then
+    echo "run_calibration: ${killed[*]} had to be killed; the run's outputs may be incomplete" >&2
+    rc=1
+  fi
+  exit "$rc"
+}
+trap cleanup EXIT
+trap 'echo "run_calibration: interrupted; stopping the graph" >&2; exit 130' INT
+trap 'exit 143' TERM
+trap 'exit 129' HUP
+
 # --- An isolated graph ----------------------------------------------------------------------
-export ROS_DOMAIN_ID=${domain_id:-$((100 + RANDOM % 100))}
+# A domain is held for the whole run by a lock file (the launcher keeps it open), so two
+# launchers never pick the same one, and probed for a graph that talks on it already (one not
+# started by this script). The run id reaches every node (parameter run_id): a node that sees
+# another run's id, or another node of its own name, on its domain stops and the run fails.
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+lock_dir=${TMPDIR:-/tmp}/run_calibration.domains
+mkdir -p "$lock_dir"
+take_domain() { # take_domain N: lock domain N for this run
+  exec {domain_fd}>"$lock_dir/$1.lock"
+  flock -n "$domain_fd" || { exec {domain_fd}>&-; return 1; }
+}
+quiet_domain() { python3 -m calibration_bringup.graph_probe --domain-id "$1" --seconds "$2"; }   # no graph talks on it
+if [ -n "$domain_id" ]; then
+  take_domain "$domain_id" || die "ROS_DOMAIN_ID $domain_id is used by another run_calibration run; choose another --domain-id or leave it out"
+  quiet_domain "$domain_id" 4 || \
+    die "ROS_DOMAIN_ID $domain_id already has a ROS graph talking on it (see above); choose another --domain-id or leave it out"
+else
+  first=$((RANDOM % 100))
+  for ((k = 0; k < 100; k++)); do
+    candidate=$((100 + (first + k) % 100))
+    take_domain "$candidate" || continue
+    if quiet_domain "$candidate" 2.5 2>/dev/null; then domain_id=$candidate; break; fi
+    echo "run_calibration: ROS_DOMAIN_ID $candidate has a graph not started by this script; trying another" >&2
+    exec {domain_fd}>&-
+  done
+  [ -n "$domain_id" ] || die "no free ROS_DOMAIN_ID in 100-199 (each is held by a run or has a graph talking on it)"
+fi
+export ROS_DOMAIN_ID=$domain_id
 export PYTHONUNBUFFERED=1 RCUTILS_COLORIZED_OUTPUT=0 RCUTILS_LOGGING_BUFFERED_STREAM=0
 if [ -z "${FASTRTPS_DEFAULT_PROFILES_FILE:-}" ] && [ -f "$config/fastdds_shm.xml" ]; then
   # Shared-memory segments large enough for whole camera frames (README: Fast DDS profile).
   export FASTRTPS_DEFAULT_PROFILES_FILE="$config/fastdds_shm.xml"
   export FASTDDS_DEFAULT_PROFILES_FILE="$config/fastdds_shm.xml"
 fi
+run_id="$(date +%Y%m%dT%H%M%S)-$$-$RANDOM"
 
 mkdir -p "$output/logs"
 output=$(cd "$output" && pwd)
-bag="$output/calibration.mcap"
-rm -f "$bag" "$output/progress.jsonl"
+resume_args=()
+if [ -n "$resume" ]; then
+  [ -f "$output/checkpoint.npz" ] || echo "run_calibration: $output has no estimator checkpoint; the estimate starts over" >&2
+  for ((k = 1; ; k++)); do [ -e "$output/run.$k.mcap" ] || break; done
+  bag="$output/run.$k.mcap"
+  mkdir -p "$output/logs/before.run.$k"    # the interrupted part's logs
+  for f in "$output"/logs/*.log; do [ -e "$f" ] && mv "$f" "$output/logs/before.run.$k/"; done
+  resume_args=(-p "resume:=true")
+else
+  bag="$output/calibration.mcap"
+  {
+    for var in robot strategy iterations seed noise estimator body_change body_change_at camera_error marker_error \
+               image_size record_images rtf; do
+      printf '%s=%q\n' "$var" "${!var}"
+    done
+  } >"$output/run.env"
+fi
+printf 'run_id=%q\ndomain_id=%q\n' "$run_id" "$domain_id" >"$output/run.ids"   # this part's id and domain
 
-declare -A pid=()
-order=()
 start() {   # start NAME PKG EXE ARGS...: its own process group, so a stop reaches ros2 run's child too
   local name=$1 pkg=$2 exe=$3; shift 3
+  # A background job of a script starts with SIGINT ignored; a node still importing (1-4 s on a
+  # loaded machine) lost a SIGINT for good that way, so the default disposition is restored first.
   # shellcheck disable=SC2046  # the command line is words on purpose (ros2 run pkg exe)
-  setsid $(command_of "$pkg" "$exe") "$@" >"$output/logs/$name.log" 2>&1 &
+  ( trap - INT QUIT; exec setsid $(command_of "$pkg" "$exe") "$@" -p "run_id:=$run_id" \
+      >"$output/logs/$name.log" 2>&1 ) &
   pid[$name]=$!
   order+=("$name")
 }
-alive() { kill -0 "${pid[$1]}" 2>/dev/null; }
-killed=()   # nodes stop had to SIGKILL: their files and exports may be missing
+fail() {    # fail NAME WHY: the node's log tail, then exit 1 (the EXIT trap stops the graph)
+  echo "run_calibration: $1 $2; last lines of $output/logs/$1.log:" >&2
+  tail -n 25 "$output/logs/$1.log" | sed 's/^/  | /' >&2
+  exit 1
+}
 all_alive() {   # all_alive NAME...: fail the run on the first one that exited
   local name rc
   for name in "$@"; do
     alive "$name" || { wait "${pid[$name]}" && rc=0 || rc=$?; fail "$name" "exited early (status $rc)"; }
   done
-}
-stop() {    # stop NAME...: SIGINT (nodes finish files and exports), then SIGKILL after 15 s
-  local name t
-  for name in "$@"; do alive "$name" && kill -INT -- "-${pid[$name]}" 2>/dev/null || true; done
-  for name in "$@"; do
-    for ((t = 0; t < 150; t++)); do alive "$name" || break; sleep 0.1; done
-    if alive "$name"; then
-      echo "run_calibration: $name did not stop on SIGINT within 15 s; killed" >&2
-      kill -KILL -- "-${pid[$name]}" 2>/dev/null || true
-      killed+=("$name")
-    fi
-    wait "${pid[$name]}" 2>/dev/null || true
-  done
-}
-cleanup() { local n; for n in "${order[@]}"; do alive "$n" && kill -KILL -- "-${pid[$n]}" 2>/dev/null; done; true; }
-trap cleanup EXIT
-trap 'echo "run_calibration: interrupted; stopping the graph" >&2; stop "${order[@]}"; exit 130' INT TERM
-fail() {    # fail NAME WHY: the node's log tail, stop everything, exit 1
-  echo "run_calibration: $1 $2; last lines of $output/logs/$1.log:" >&2
-  tail -n 25 "$output/logs/$1.log" | sed 's/^/  | /' >&2
-  stop "${order[@]}"
-  exit 1
 }
 
 recorder_args=(-p "output:=$bag" -p "robot:=$robot")
@@ -193,7 +309,8 @@ report_args=()       # the report's re-run estimates them too
 [ -z "$marker_error" ] || report_args+=(--marker-prior "$marker_error")
 
 echo "run_calibration: $robot, $strategy, $iterations iterations, seed $seed, noise $noise, estimator $estimator," \
-     "$size_text, rtf $rtf, ROS_DOMAIN_ID $ROS_DOMAIN_ID -> $output"
+     "$size_text, rtf $rtf, ROS_DOMAIN_ID $ROS_DOMAIN_ID, run $run_id -> $output"
+[ -z "$resume" ] || echo "run_calibration: resuming the run in $output; this part is recorded to $bag"
 [ -z "$body_change" ] || echo "run_calibration: the real robot changes by '$body_change' at iteration $body_change_at"
 wall0=$SECONDS
 # The recorder first, so every latched fact (true table, initial estimate, camera poses) is in the bag.
@@ -212,7 +329,7 @@ fi
 start detector marker_detector detector_node --ros-args --params-file "$config/detector.yaml" -p "robot:=$robot"
 start estimator dh_estimator estimator_node --ros-args --params-file "$config/estimator.yaml" \
   -p "robot:=$robot" -p "initial_seed:=$seed" -p "noise_model:=$noise" -p "estimator:=$estimator" \
-  -p "export_dir:=$output/model" "${extrinsics_args[@]}"
+  -p "export_dir:=$output/model" -p "checkpoint_path:=$output/checkpoint.npz" "${extrinsics_args[@]}"
 # The selector last, once the recorder records every topic but the selector's own two (/arm/command,
 # /calibration/progress): nothing moves and the estimator does not update before the first command,
 # so the bag then holds the initial estimate and every observation. (The recorder finds publishers
@@ -233,7 +350,8 @@ done
 recording_all || fail recorder "did not subscribe to the other nodes' topics within 20 s"
 start selector active_selector selector_node --ros-args --params-file "$config/selector.yaml" \
   -p "robot:=$robot" -p "strategy:=$strategy" -p "iterations:=$iterations" -p "seed:=$seed" -p "noise_model:=$noise" \
-  -p "progress_file:=$output/progress.jsonl" "${extrinsics_args[@]}"
+  -p "progress_file:=$output/progress.jsonl" -p "wait_for_recorder:=true" "${resume_args[@]}" \
+  "${extrinsics_args[@]}"
 
 # --- Wait for the selector; a node that dies fails the run ----------------------------------
 shown=0
@@ -264,9 +382,7 @@ calibration_cmd=$(command_of calibration_bringup calibration_report)
 $calibration_cmd --bag "$bag" --output "$output" --wall-seconds "$wall" \
   --title "$robot, $strategy, $iterations iterations, seed $seed, noise $noise, estimator $estimator, $size_text" \
   --params-file "$config/estimator.yaml" --noise-model "$noise" --estimator "$estimator" --robot "$robot" "${report_args[@]}"
-# A node killed at the end may have lost its export (estimator) or the end of the bag (recorder):
-# the report above says what the bag holds, but the run is not a clean one.
-if [ "${#killed[@]}" -gt 0 ]; then
-  echo "run_calibration: ${killed[*]} had to be killed; the run's outputs may be incomplete" >&2
-  exit 1
-fi
+# The run's health: a run with many timeouts (a stalled estimator) or whose offline re-run
+# disagrees with the online estimate is not a result to trust, even if it finished.
+python3 -m calibration_bringup.run_check "$output" --max-timeouts "$max_timeouts" \
+  --max-dh-difference "$max_dh_difference" ${resume:+--resumed}

@@ -30,6 +30,11 @@ class SelectorNodeSettings:
     eye: str = setting('left', 'Which eye the detector uses (its camera pose enters the cost)',
                        choices=('left', 'right'))
     progress_file: str = setting('', 'JSON-lines file, one object per iteration')
+    wait_for_recorder: bool = setting(False, 'Select the first target only once /calibration/progress has a '
+                                             'subscriber (the recorder, which subscribes to /arm/command in the '
+                                             'same pass): a recorder that matches late loses the first commands')
+    resume: bool = setting(False, 'Continue the run recorded in progress_file (its iterations count, its '
+                                  'attempts teach the occlusion model) instead of starting it anew')
     wait_report_period: float = setting(2.0, 'Wall seconds between "waiting for" reports', (0.1, 3600.0))
     camera_prior: str = setting('', "The estimator's camera_prior: non-empty (not 0) when it estimates the "
                                 'camera pose, whose covariance then comes with the estimate')

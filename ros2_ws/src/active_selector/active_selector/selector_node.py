@@ -32,8 +32,8 @@ Publications
 Parameters
 ----------
 Declared from the settings dataclasses of :mod:`active_selector.node_settings` (one default, one
-description and one range each): robot, eye, progress_file, wait_report_period
-(SelectorNodeSettings); strategy ('random' | 'al' | 'ucsal' | 'ccsal'), seed, gamma, delta,
+description and one range each): robot, eye, progress_file, wait_for_recorder, resume,
+wait_report_period (SelectorNodeSettings); strategy ('random' | 'al' | 'ucsal' | 'ccsal'), seed, gamma, delta,
 optimizer, algorithm, max_evals, n_candidates, refine_starts, refine_evals, local_algorithm,
 repeat_tolerance (StrategySettings); penalty_a, penalty_b, occlusion_length_scale,
 occlusion_a0, occlusion_b0, occlusion_prior ('flat' | 'geometric'), occlusion_mode ('paper' |
@@ -57,6 +57,7 @@ from builtin_interfaces.msg import Duration
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseArray, PoseStamped
 from rclpy.clock import Clock, ClockType
+from rclpy.duration import Duration as RclpyDuration
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray, String
@@ -103,9 +104,13 @@ class SelectorNode(Node):
         self.iterations = loop_settings.iterations
         self.loop = CalibrationLoop(self.planner, loop_settings, self.now)
         self.progress_file = Path(self.settings.progress_file) if self.settings.progress_file else None
+        resumed = 0
         if self.progress_file is not None:
             self.progress_file.parent.mkdir(parents=True, exist_ok=True)
-            self.progress_file.write_text('')
+            if self.settings.resume and self.progress_file.exists():
+                resumed = self._resume(self.progress_file)
+            else:
+                self.progress_file.write_text('')
 
         self.dh: np.ndarray | None = None
         self.P: np.ndarray | None = None
@@ -133,7 +138,44 @@ class SelectorNode(Node):
         config = strategy.config()
         self.get_logger().info(f'{config.strategy.value} run of {self.iterations} iterations '
                                f'({config.search}; {self.planner.settings.criterion}, occlusion '
-                               f'{self.planner.settings.occlusion_mode})')
+                               f'{self.planner.settings.occlusion_mode})'
+                               + (f', resumed after iteration {resumed}' if resumed else ''))
+
+    def _resume(self, path: Path) -> int:
+        """Account the iterations recorded in ``path`` (movement, occlusion model, count); their number.
+
+        A record cut short by the interruption (the last line) is dropped; the next iteration
+        number follows the records kept, the movement continues from the recorded total and from
+        the last configuration reached. (The strategy's random stream starts anew.)
+
+        Raises
+        ------
+        ValueError
+            If a record lacks a field, or the file holds the whole run already.
+        """
+        lines = path.read_text().splitlines()
+        records = []
+        for i, line in enumerate(lines):
+            try:
+                records.append(json.loads(line))
+            except json.JSONDecodeError:
+                if i < len(lines) - 1:
+                    raise ValueError(f'{path}: line {i + 1} is not JSON: {line[:80]!r}') from None
+        for r in records:
+            try:
+                if self.planner.start is None:      # movement is the recorded total (below), not re-derived
+                    self.planner.start = np.radians(r['reached_deg'])
+                self.planner.record(np.radians(r['target_deg']), np.radians(r['reached_deg']), r['outcome'],
+                                    bool(r['detected']), float(r['selection_s']))
+            except KeyError as exc:
+                raise ValueError(f'{path}: iteration record without {exc}: {r}') from None
+        if records:
+            self.planner.movement_deg = float(records[-1]['movement_deg'])
+        if len(records) >= self.iterations:
+            raise ValueError(f'{path} records {len(records)} iterations already; nothing to resume '
+                             f'(iterations: {self.iterations})')
+        path.write_text(''.join(json.dumps(r) + '\n' for r in records))      # without a torn last line
+        return len(records)
 
     # ---------------------------------------------------------------------------------- inputs
 
@@ -163,6 +205,8 @@ class SelectorNode(Node):
                 missing.append('/body_schema/covariance')
             if self.camera_pose is None:
                 missing.append(f'/camera/{self.settings.eye}/pose')
+        if self.settings.wait_for_recorder and self.pub_progress.get_subscription_count() == 0:
+            missing.append('a subscriber of /calibration/progress (the recorder)')
         return missing
 
     def now(self) -> float:
@@ -276,9 +320,20 @@ class SelectorNode(Node):
                                    f'{self.planner.discarded} discarded')
 
 
+#: Seconds the selector waits, once done, for its last records to be acknowledged.
+FLUSH_TIMEOUT_S = 5.0
+
+
 def _run_until_done(node: SelectorNode) -> None:
     while rclpy.ok() and not node.done:
         rclpy.spin_once(node, timeout_sec=0.1)
+    if node.done:
+        # The process ends next: a reliable record not yet acknowledged would die with it (the
+        # recorder lost the last iteration's progress record that way in runs on a loaded machine).
+        for pub in (node.pub_progress, node.pub_cmd):
+            if not pub.wait_for_all_acked(RclpyDuration(seconds=FLUSH_TIMEOUT_S)):
+                node.get_logger().warning(f'{pub.topic_name}: not every subscriber acknowledged the last '
+                                          f'message within {FLUSH_TIMEOUT_S} s')
 
 
 def main(args: list[str] | None = None) -> None:

@@ -207,3 +207,41 @@ def test_a_target_not_reached_in_time_is_unreachable(ros):
 def test_bad_choices_are_refused_by_name(ros, name, value):
     with pytest.raises(ValueError, match=value):
         SelectorNode(context=ros.context, parameter_overrides=[Parameter(name, value=value)])
+
+
+def _record(i: int, q_deg: list[float], outcome: str, detected: bool, movement: float) -> dict:
+    return {'iteration': i, 'strategy': 'random', 'outcome': outcome, 'detected': detected, 'reason': '',
+            'target_deg': q_deg, 'reached_deg': q_deg, 'movement_deg': movement, 'selection_s': 0.1,
+            'discarded': 0, 'move_sim_s': 1.0, 'outcome_sim_s': 0.5, 'sim_time': float(i)}
+
+
+def test_resume_continues_the_recorded_iterations_and_the_occlusion_model(ros, tmp_path) -> None:
+    """run_calibration.sh --resume: the selector's record is its state (count, movement, attempts)."""
+    centre = np.degrees(np.mean(ARM.calibration_box, axis=1))
+    records = [_record(1, (centre + 5).tolist(), 'accepted', True, 40.0),
+               _record(2, (centre - 5).tolist(), 'failed', False, 75.0)]
+    progress = tmp_path / 'progress.jsonl'
+    progress.write_text(''.join(json.dumps(r) + '\n' for r in records) + '{"iteration": 3, "strat')   # torn line
+    node = ros.add(SelectorNode(context=ros.context, parameter_overrides=[
+        Parameter('strategy', value='random'), Parameter('iterations', value=4),
+        Parameter('progress_file', value=str(progress)), Parameter('resume', value=True)]))
+    assert node.loop.iteration == 2 and not node.done
+    assert node.planner.movement_deg == 75.0 and node.planner.discarded == 1
+    q, seen = node.planner.occlusion.attempts
+    np.testing.assert_allclose(np.degrees(q), [centre + 5, centre - 5], atol=1e-9)
+    assert seen.tolist() == [True, False]
+    assert [json.loads(ln) for ln in progress.read_text().splitlines()] == records   # torn line dropped
+
+    fresh = ros.add(SelectorNode(context=ros.context, parameter_overrides=[
+        Parameter('progress_file', value=str(progress)), Parameter('iterations', value=4)]))
+    assert fresh.loop.iteration == 0 and progress.read_text() == ''       # without resume: a new run
+
+
+def test_resume_of_a_finished_run_is_refused(ros, tmp_path) -> None:
+    progress = tmp_path / 'progress.jsonl'
+    centre = np.degrees(np.mean(ARM.calibration_box, axis=1)).tolist()
+    progress.write_text(json.dumps(_record(1, centre, 'accepted', True, 10.0)) + '\n')
+    with pytest.raises(ValueError, match='1 iterations already'):
+        SelectorNode(context=ros.context, parameter_overrides=[
+            Parameter('iterations', value=1), Parameter('progress_file', value=str(progress)),
+            Parameter('resume', value=True)])

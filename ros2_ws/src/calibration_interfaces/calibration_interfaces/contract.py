@@ -10,8 +10,11 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass
 
+from .parameters import setting
+
 __all__ = ['Reliability', 'Durability', 'QosSpec', 'SENSOR', 'RELIABLE', 'LATCHED', 'HISTORY', 'ContractTopic',
-           'CONTRACT', 'BY_NAME', 'IMAGE_TOPICS', 'topic', 'ESTIMATE_FRAME_PREFIX', 'optical_frame']
+           'CONTRACT', 'BY_NAME', 'IMAGE_TOPICS', 'topic', 'ESTIMATE_FRAME_PREFIX', 'optical_frame', 'RUN_ID_TOPIC',
+           'RunSettings']
 
 
 class Reliability(enum.StrEnum):
@@ -122,7 +125,28 @@ CONTRACT: tuple[ContractTopic, ...] = (
     # The detector's verdict on every frame (calibration_interfaces.outcome.FrameStatus: detected,
     # no marker, bad input with the reason), so a bad frame is not mistaken for a hidden hand.
     ContractTopic('/diagnostics', 'diagnostic_msgs/msg/DiagnosticArray'),
+    # Which run the graph belongs to, latched by every node of a launched run (RunSettings): a
+    # node that receives another id shares its domain with another run and stops.
+    ContractTopic('/calibration/run_id', 'std_msgs/msg/String', LATCHED),
 )
+
+#: The topic on which every node of a launched run latches its run id.
+RUN_ID_TOPIC = '/calibration/run_id'
+
+
+@dataclass(frozen=True)
+class RunSettings:
+    """The run a node belongs to (every node executable declares it, see ``node_util.spin_node``).
+
+    Attributes
+    ----------
+    run_id : str
+        Latched on :data:`RUN_ID_TOPIC`; another id on the same topic means two runs share one
+        ROS domain, and the node stops instead of mixing their messages. Empty: no check.
+    """
+
+    run_id: str = setting('', 'Id of the run this node belongs to (the launcher sets it); a node that '
+                              'sees another run id on /calibration/run_id stops. Empty: no check')
 
 BY_NAME: dict[str, ContractTopic] = {t.name: t for t in CONTRACT}
 

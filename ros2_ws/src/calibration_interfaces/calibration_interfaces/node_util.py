@@ -5,26 +5,37 @@
   (:mod:`calibration_interfaces.parameters`);
 * :class:`WarnOnce`: a warning logged once per key;
 * :func:`message_class`;
+* :class:`RunGuard`: stops a node that shares its domain with another run;
 * :func:`spin_node`: a node's ``main``.
 """
 from __future__ import annotations
 
 import importlib
+import signal
 from collections.abc import Callable, Mapping
 from typing import Any
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 import rclpy
 from rclpy.exceptions import ParameterUninitializedException
+from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions, install_signal_handlers
+from std_msgs.msg import String
 
-from .contract import Durability, QosSpec, Reliability, topic
+from .contract import RUN_ID_TOPIC, Durability, QosSpec, Reliability, RunSettings, topic
 from .parameters import ParameterSpec, parameter_specs, settings_from_parameters
 
-__all__ = ['qos_profile', 'descriptor', 'declare_settings', 'WarnOnce', 'message_class', 'spin_node']
+__all__ = ['qos_profile', 'descriptor', 'declare_settings', 'WarnOnce', 'message_class', 'RunGuard', 'spin_node',
+           'RUN_CONFLICT_STATUS']
+
+#: Exit status of a node stopped by :class:`RunGuard`.
+RUN_CONFLICT_STATUS = 3
+#: Wall seconds a node stopped by :class:`RunGuard` keeps its run id published before it exits.
+LINGER_S = 5.0
 
 
 def qos_profile(spec: QosSpec | str, depth: int | None = None) -> QoSProfile:
@@ -143,22 +154,109 @@ def message_class(type_name: str) -> type:
         raise ImportError(f'message type {type_name!r} is not installed: {exc}') from exc
 
 
+class RunGuard:
+    """Latches the node's run id on ``/calibration/run_id``; another id there stops the node.
+
+    Two graphs on one ROS domain would otherwise mix their messages silently (joint states of one
+    robot paired with hand poses of the other). On the first foreign id, or a second node of this
+    node's name (a graph started without run ids), the guard logs an error, records what it saw
+    in :attr:`conflict`, destroys the node's other subscriptions and timers (it takes no more
+    input and drives nothing) and shuts the context down :data:`LINGER_S` later, once its own id
+    has reached the other run; :func:`spin_node` then exits with :data:`RUN_CONFLICT_STATUS`.
+
+    Parameters
+    ----------
+    node : Node
+    run_id : str
+        Non-empty id of this node's run.
+    period : float
+        Wall seconds between two looks at the graph for a node of the same name.
+    """
+
+    def __init__(self, node: Node, run_id: str, period: float = 1.0) -> None:
+        if not run_id:
+            raise ValueError('RunGuard needs a non-empty run id')
+        self.node, self.run_id = node, run_id
+        self.conflict: str | None = None
+        self.domain_id = node.context.get_domain_id()
+        qos = qos_profile(RUN_ID_TOPIC)
+        self._pub = node.create_publisher(String, RUN_ID_TOPIC, qos)
+        self._pub.publish(String(data=run_id))
+        self._sub = node.create_subscription(String, RUN_ID_TOPIC, self._on_run_id, qos)
+        # A graph started without run ids (another launcher, by hand) shows as a second node of
+        # this node's name; the graph is polled on a wall-clock timer (sim time may stand still).
+        self._timer = node.create_timer(period, self._check_names, clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+    def _on_run_id(self, msg: String) -> None:
+        if msg.data != self.run_id:
+            self._stop(f'another run ({msg.data!r})')
+
+    def _check_names(self) -> None:
+        me = (self.node.get_name(), self.node.get_namespace())
+        if self.node.get_node_names_and_namespaces().count(me) > 1:
+            self._stop(f'another node named {self.node.get_fully_qualified_name()!r}')
+
+    def _stop(self, what: str) -> None:
+        if self.conflict is not None:
+            return
+        self.conflict = what
+        self.node.get_logger().error(
+            f'{what} is on ROS_DOMAIN_ID {self.domain_id}; this node of run {self.run_id!r} stops rather '
+            'than mix the two runs\' messages (give each run its own domain)')
+        # Stop taking input now, but linger before shutting the context down: our latched id must
+        # reach the other run too (a reader that matched us later would otherwise find it gone),
+        # so that both runs stop, not only the one that noticed first.
+        for sub in list(self.node.subscriptions):
+            if sub is not self._sub:
+                self.node.destroy_subscription(sub)
+        for timer in list(self.node.timers):
+            if timer is not self._timer:
+                self.node.destroy_timer(timer)
+        self._timer.cancel()
+        self._linger = self.node.create_timer(LINGER_S, self.node.context.try_shutdown,
+                                              clock=Clock(clock_type=ClockType.STEADY_TIME))
+
+
 def spin_node(make_node: Callable[[], Node], args: list[str] | None = None,
               run: Callable[[Node], None] | None = None) -> None:
-    """A node executable's ``main``: init, spin until Ctrl-C or shutdown, destroy the node, shut down.
+    """A node executable's ``main``: init, build, spin until Ctrl-C or shutdown, destroy, shut down.
 
     ``run(node)`` drives the node (default ``rclpy.spin``: until shutdown); a node that ends by
-    itself passes its own loop. SIGINT and SIGTERM end it (rclpy's handlers shut the context
-    down); ``destroy_node`` then runs, so a node can finish its files or close its servers there.
+    itself passes its own loop. SIGINT and SIGTERM end it at any moment after this is called:
+    while ``make_node`` builds the node (seconds for some) a signal is only remembered, so the
+    node is built whole and then destroyed without spinning (a KeyboardInterrupt raised inside
+    its constructor would lose the node, and with it the estimator's export); after that,
+    rclpy's handlers shut the context down. ``destroy_node`` runs in every case, so a node can
+    finish its files, exports or servers there. The node declares ``run_id``
+    (:class:`~calibration_interfaces.contract.RunSettings`); a non-empty one is guarded by
+    :class:`RunGuard`.
+
+    Raises
+    ------
+    SystemExit
+        With :data:`RUN_CONFLICT_STATUS` when the node stopped on another run's id.
     """
-    rclpy.init(args=args)
+    received: list[int] = []
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        # Also undoes an inherited SIG_IGN (a background job of a script starts with SIGINT ignored).
+        signal.signal(signum, lambda s, _frame: received.append(s))
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
+    guard = None
     try:
         node = make_node()
-        (rclpy.spin if run is None else run)(node)
+        run_id = declare_settings(node, RunSettings, read_only=True).run_id
+        if run_id:
+            guard = RunGuard(node, run_id)
+        # From now on a signal shuts the context down (and still reaches the recorder above).
+        install_signal_handlers(SignalHandlerOptions.ALL)
+        if not received:
+            (rclpy.spin if run is None else run)(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+    if guard is not None and guard.conflict is not None:
+        raise SystemExit(RUN_CONFLICT_STATUS)

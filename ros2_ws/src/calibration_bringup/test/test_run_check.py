@@ -1,0 +1,85 @@
+"""run_check: a finished run with many timeouts or an offline re-run that disagrees is unhealthy."""
+from __future__ import annotations
+
+import csv
+import subprocess
+import sys
+from dataclasses import fields
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from calibration_bringup.run_check import CheckSettings, check_rows, check_run, dh_difference
+from dh_estimator.evaluate import Evaluation, IterationRow, summary_text
+
+
+def _rows(outcomes: list[str], offline_mm: float = 4.7, online_mm: float = 4.7) -> list[IterationRow]:
+    """The report's rows: the initial guess, then one per iteration."""
+    return [IterationRow(iteration=i, outcome=outcome, detected=True, movement_deg=10.0 * i, discarded=0,
+                         position_mm=offline_mm if i == len(outcomes) else 50.0, orientation_deg=2.0,
+                         online_position_mm=online_mm if i == len(outcomes) else 50.0, online_orientation_deg=2.0,
+                         offline_updates=i, selection_s=0.1, sim_time=float(i))
+            for i, outcome in enumerate(['initial', *outcomes])]
+
+
+def _csv(rows: list[IterationRow]) -> list[dict[str, str]]:
+    return [{f.name: str(getattr(r, f.name)) for f in fields(IterationRow)} for r in rows]
+
+
+def _report(rows: list[IterationRow], offset: float) -> str:
+    """The summary calibration_report prints and writes, for final tables ``offset`` apart."""
+    dh = np.zeros((7, 4))
+    ev = Evaluation(rows=rows, final_dh=dh + offset, online_final_dh=dh, true_dh=dh,
+                    counters={'updates': 5, 'rejected': 0}, strategy='al')
+    return summary_text(ev)
+
+
+def test_a_healthy_run_has_no_problem() -> None:
+    rows = _rows(['accepted'] * 9 + ['timeout'])                           # 10 % timeouts: within 20 %
+    assert check_rows(_csv(rows), dh_difference(_report(rows, 0.0))) == []
+
+
+def test_a_stalled_estimator_is_reported() -> None:
+    """One future-stamped joint state used to stall the estimator: most iterations 'timeout'."""
+    rows = _csv(_rows(['accepted'] * 2 + ['timeout'] * 3))
+    (problem,) = check_rows(rows, 0.0)
+    assert '3 of 5 iterations ended "timeout"' in problem
+    assert check_rows(rows, 0.0, CheckSettings(max_timeouts=0.6)) == []
+
+
+def test_an_offline_rerun_that_disagrees_is_reported() -> None:
+    """The issue's case: offline re-run 28.3 mm, online 4.7 mm, and the run exited 0."""
+    rows = _rows(['accepted'] * 5, offline_mm=28.3, online_mm=4.7)
+    diff = dh_difference(_report(rows, 0.02))                                # what the report states
+    assert diff == pytest.approx(0.02, rel=1e-2)
+    (problem,) = check_rows(_csv(rows), diff)
+    assert '2.00e-02' in problem and '28.30 mm' in problem and '4.70 mm' in problem
+    assert check_rows(_csv(rows), 1e-9) == []                                # a healthy run's agreement
+    assert check_rows(_csv(rows), 1e-3, CheckSettings(max_dh_difference=1e-2)) == []
+    assert check_rows(_csv(rows), float('nan'))                              # NaN is not agreement
+    assert 'does not say' in check_rows(_csv(rows), None)[0]
+    assert check_rows(_csv(rows), 0.02, CheckSettings(check_agreement=False)) == []
+
+
+def test_bad_thresholds_and_files_are_named(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match='1.5'):
+        CheckSettings(max_timeouts=1.5)
+    with pytest.raises(ValueError, match='no iteration row'):
+        check_rows(_csv(_rows([]))[:1], 0.0)
+    with pytest.raises(FileNotFoundError):
+        check_run(tmp_path)
+
+
+def test_the_command_exits_1_and_says_why(tmp_path: Path) -> None:
+    rows = _rows(['accepted'] * 5, offline_mm=28.3)
+    with (tmp_path / 'metrics.csv').open('w', newline='') as f:
+        w = csv.DictWriter(f, fieldnames=[f.name for f in fields(IterationRow)])
+        w.writeheader()
+        w.writerows(_csv(rows))
+    (tmp_path / 'report.md').write_text(_report(rows, 0.02))
+    cmd = [sys.executable, '-m', 'calibration_bringup.run_check', str(tmp_path)]
+    bad = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 1 and 'UNHEALTHY RUN' in bad.stderr and '2.00e-02' in bad.stderr, bad.stderr
+    ok = subprocess.run([*cmd, '--max-dh-difference', '0.05'], capture_output=True, text=True, timeout=60)
+    assert ok.returncode == 0, ok.stderr

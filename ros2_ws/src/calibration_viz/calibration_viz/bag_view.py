@@ -132,19 +132,7 @@ def log_bag(bag: str | Path, metrics_csv: str | Path | None = None) -> None:
     import rerun as rr
 
     bag = Path(bag)
-    if not summary(bag).complete:
-        # Rerun's importer needs the summary a killed recorder never wrote: give it a recovered
-        # copy, kept until exit (the importer reads it in the background).
-        import atexit
-        import shutil
-        import tempfile
-
-        tmp = tempfile.mkdtemp(prefix='bag_view_')
-        atexit.register(shutil.rmtree, tmp, ignore_errors=True)
-        whole = Path(tmp) / bag.name
-        print(f'bag_view: {recover(bag, whole).loss}', file=sys.stderr)
-        bag = whole
-    rr.log_file_from_path(bag)
+    # Ours first: small, so a viewer streaming the recording shows them before the images arrive.
     urdf = estimate_urdf(bag)
     if urdf is not None:
         # Link names carry the estimate/ prefix, so the meshes hang on the bag's estimate/ frames.
@@ -164,6 +152,19 @@ def log_bag(bag: str | Path, metrics_csv: str | Path | None = None) -> None:
             rr.set_time(LOG_TIMELINE, timestamp=np.datetime64(int(round(t * 1e9)), 'ns'))
             rr.log(f'{ERROR_ENTITY}/position_mm', rr.Scalars(pos))
             rr.log(f'{ERROR_ENTITY}/orientation_deg', rr.Scalars(rot))
+    if not summary(bag).complete:
+        # Rerun's importer needs the summary a killed recorder never wrote: give it a recovered
+        # copy, kept until exit (the importer reads it in the background).
+        import atexit
+        import shutil
+        import tempfile
+
+        tmp = tempfile.mkdtemp(prefix='bag_view_')
+        atexit.register(shutil.rmtree, tmp, ignore_errors=True)
+        whole = Path(tmp) / bag.name
+        print(f'bag_view: {recover(bag, whole).loss}', file=sys.stderr)
+        bag = whole
+    rr.log_file_from_path(bag)
     rr.send_blueprint(blueprint())
 
 

@@ -76,8 +76,8 @@ from .estimator import EstimatorSettings, OnlineEstimator
 from .node_settings import EstimatorNodeSettings
 from .pairing import MessageError, MessageFeeder, ObservationPairer, ObservationResult, PairingSettings
 
-#: Seconds between two warnings about the same clock fault (each one carries the running count).
-THROTTLE_S = 5.0
+#: Seconds between two warnings of one kind (the first at once; each carries the running count).
+THROTTLE_S = 2.0
 
 # Best effort matches any publisher; the deep queue keeps the rest window intact under bursts.
 JOINT_STATES_QOS = qos_profile(SENSOR, depth=200)

@@ -45,6 +45,9 @@ PoseDependentSettings).
 """
 from __future__ import annotations
 
+# First: a SIGINT during the slow imports below is not lost (see calibration_interfaces.startup).
+from calibration_interfaces import startup  # noqa: F401,I001
+
 import json
 import sys
 import time

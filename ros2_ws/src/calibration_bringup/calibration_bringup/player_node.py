@@ -45,6 +45,9 @@ start_paused : bool
 """
 from __future__ import annotations
 
+# First: a SIGINT during the slow imports below is not lost (see calibration_interfaces.startup).
+from calibration_interfaces import startup  # noqa: F401,I001
+
 import sys
 import time
 from collections.abc import Iterator

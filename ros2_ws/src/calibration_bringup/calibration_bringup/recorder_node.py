@@ -67,6 +67,9 @@ use_sim_time : bool
 """
 from __future__ import annotations
 
+# First: a SIGINT during the slow imports below is not lost (see calibration_interfaces.startup).
+from calibration_interfaces import startup  # noqa: F401,I001
+
 import functools
 import sys
 import time

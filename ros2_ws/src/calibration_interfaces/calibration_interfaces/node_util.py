@@ -26,6 +26,7 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rclpy.signals import SignalHandlerOptions, install_signal_handlers
 from std_msgs.msg import String
 
+from . import startup
 from .contract import RUN_ID_TOPIC, Durability, QosSpec, Reliability, RunSettings, topic
 from .parameters import ParameterSpec, parameter_specs, settings_from_parameters
 
@@ -236,10 +237,13 @@ def spin_node(make_node: Callable[[], Node], args: list[str] | None = None,
     SystemExit
         With :data:`RUN_CONFLICT_STATUS` when the node stopped on another run's id.
     """
-    received: list[int] = []
+    # A signal during the imports whose KeyboardInterrupt Python swallowed (see .startup): stop now.
+    received: list[int] = list(startup.RECEIVED)
     for signum in (signal.SIGINT, signal.SIGTERM):
         # Also undoes an inherited SIG_IGN (a background job of a script starts with SIGINT ignored).
         signal.signal(signum, lambda s, _frame: received.append(s))
+    if received:
+        return
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = None
     guard = None

@@ -165,6 +165,39 @@ def test_spin_node_runs_the_given_loop_then_destroys_the_node_and_shuts_down(mon
     assert not rclpy.ok()
 
 
+# A SIGINT that lands in a finalizer during the imports: Python prints "Exception ignored" and
+# goes on (seen in tests/test_node_signals.py under load: the detector then ran until SIGKILLed).
+_SWALLOWED_SIGINT = """
+import os, signal{startup}
+
+class Finalizer:
+    def __del__(self):
+        os.kill(os.getpid(), signal.SIGINT)
+        for _ in range(1000):   # let the interpreter run the handler here, inside the finalizer
+            pass
+
+Finalizer()
+from calibration_interfaces.node_util import spin_node
+
+def build():
+    raise SystemExit(5)          # reaching this means the signal was lost
+
+spin_node(build, ['probe'])
+print('ended without building the node')
+"""
+
+
+@pytest.mark.parametrize('first', [True, False], ids=['startup imported first', 'without it'])
+def test_a_sigint_python_swallowed_during_the_imports_still_ends_the_node(first: bool) -> None:
+    code = _SWALLOWED_SIGINT.format(startup='\nfrom calibration_interfaces import startup' if first else '')
+    done = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=120)
+    assert 'Exception ignored' in done.stderr and 'KeyboardInterrupt' in done.stderr, done.stderr
+    if first:
+        assert done.returncode == 0 and 'ended without building the node' in done.stdout, done.stderr
+    else:
+        assert done.returncode == 5, 'without calibration_interfaces.startup the swallowed signal is lost'
+
+
 def test_keyed_throttle_lets_every_kind_through_and_counts_what_it_hid() -> None:
     """Twelve distinct problems in a burst are twelve lines (one throttle per call site logged six);
     repeats of one kind within the period are suppressed and counted on its next line."""

@@ -27,6 +27,9 @@ redraw_rate, image_rate, history, error_configs, cameras.
 """
 from __future__ import annotations
 
+# First: a SIGINT during the slow imports below is not lost (see calibration_interfaces.startup).
+from calibration_interfaces import startup  # noqa: F401,I001
+
 import time
 from typing import Any
 

@@ -49,6 +49,9 @@ README's table lists them with defaults and ranges. ``config/estimator.yaml`` se
 """
 from __future__ import annotations
 
+# First: a SIGINT during the slow imports below is not lost (see calibration_interfaces.startup).
+from calibration_interfaces import startup  # noqa: F401,I001
+
 import sys
 from pathlib import Path
 from typing import Any

@@ -52,6 +52,9 @@ run's values.
 """
 from __future__ import annotations
 
+# First: a SIGINT during the slow imports below is not lost (see calibration_interfaces.startup).
+from calibration_interfaces import startup  # noqa: F401,I001
+
 import dataclasses
 import re
 import time

@@ -42,6 +42,9 @@ No services.
 """
 from __future__ import annotations
 
+# First: a SIGINT during the slow imports below is not lost (see calibration_interfaces.startup).
+from calibration_interfaces import startup  # noqa: F401,I001
+
 import time
 from dataclasses import dataclass
 from typing import Any

@@ -120,14 +120,16 @@ def blueprint() -> 'rrb.Blueprint':  # noqa: F821 (rerun is imported lazily)
                 row_shares=[1, 1]),
             column_shares=[3, 2]),
         rrb.SelectionPanel(state='collapsed'), rrb.BlueprintPanel(state='collapsed'),
-        rrb.TimePanel(state='collapsed'),
+        # Following: the view opens at the end of the run (the last estimate), not at its start.
+        rrb.TimePanel(state='collapsed', timeline=LOG_TIMELINE, play_state='following'),
         collapse_panels=False)
 
 
-def log_bag(bag: str | Path, metrics_csv: str | Path | None = None) -> None:
+def log_bag(bag: str | Path, metrics_csv: str | Path | None = None, history: int = 50) -> None:
     """Log ``bag`` and the calibration's extras to the current Rerun recording.
 
-    Call after ``rerun.init`` and a sink (``rerun.save``, ``rerun.serve_grpc``...).
+    Call after ``rerun.init`` and a sink (``rerun.save``, ``rerun.serve_grpc``...). ``history``:
+    the latest observed hand poses drawn at each moment (the live view's default).
     """
     import rerun as rr
 
@@ -141,9 +143,10 @@ def log_bag(bag: str | Path, metrics_csv: str | Path | None = None) -> None:
     obs = hand_observations(bag)
     for i, t in enumerate(obs.log_time_ns):
         rr.set_time(LOG_TIMELINE, timestamp=np.datetime64(int(t), 'ns'))
-        # Cumulative: every observation so far, as the estimator has them.
-        rr.log(OBSERVATION_ENTITY, rr.Ellipsoids3D(centers=obs.centers[:i + 1], half_sizes=obs.half_sizes[:i + 1],
-                                                   quaternions=obs.quaternions[:i + 1], colors=(40, 160, 255),
+        # The latest `history` detections (every frame the detector saw the hand in, moving ones too).
+        recent = slice(max(0, i + 1 - history), i + 1)
+        rr.log(OBSERVATION_ENTITY, rr.Ellipsoids3D(centers=obs.centers[recent], half_sizes=obs.half_sizes[recent],
+                                                   quaternions=obs.quaternions[recent], colors=(40, 160, 255),
                                                    fill_mode='solid'),
                rr.CoordinateFrame(obs.frame))
     if metrics_csv is not None:

@@ -215,3 +215,21 @@ def test_an_unchanged_scene_is_rendered_once_and_any_change_renders_again() -> N
         w.set_head_pose(ROBOT.eyes.head_pose)
         w.render(cam, intr)
         assert w.renders == n + 4
+
+
+def test_the_ur5e_plate_clears_the_flange_under_the_issues_mounting_error() -> None:
+    """``--marker-error "0.005 5"`` moves the drawn plate: every corner must stay above the hand's
+    face (z = 0) by more than TinyRenderer's depth resolution at 1.7 m, or the hand shows through
+    the marker (at 3 mm proud most detections of such a run were lost)."""
+    from body_schema.arm_visuals import quad_side
+    from body_schema.extrinsics import corrections, random_delta
+    ur = load_robot('ur5e')
+    half = quad_side(ur.marker_dictionary, ur.marker_side_length) / 2
+    corners = np.array([[half, half, 0, 1], [-half, half, 0, 1], [-half, -half, 0, 1], [half, -half, 0, 1]]).T
+    nominal = ur.markers[0].hand_T_marker
+    lowest = []
+    for seed in range(300):
+        delta = random_delta(np.random.default_rng([seed, 16]), 0.005, np.radians(5.0))
+        board = corrections(np.eye(4), nominal, np.zeros(6), delta)[1]
+        lowest.append((board @ nominal @ corners)[2].min())
+    assert min(lowest) > 0.002

@@ -3,7 +3,8 @@
 Pure module. The simulator renders this geometry and ``/robot_description`` and
 ``/body_schema/robot_description`` carry it, so a 3D view (Foxglove, RViz) draws the same arm the
 cameras see: a cylinder along each DH link, a ball at each joint where the chain has moved on, and
-a 7 x 5.5 x 2.5 cm hand (palm, fingers, thumb, wrist) whose palm carries the ArUco markers.
+a 7 x 5.5 x 2.5 cm hand (palm, fingers, thumb, wrist) whose palm carries the ArUco markers (a
+palm that grows to hold markers larger than it, e.g. a calibration plate on an industrial flange).
 """
 from __future__ import annotations
 
@@ -12,10 +13,12 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import ArrayLike
 
+from .markers import aruco_dictionary, marker_corners
+from .robot import MarkerPlacement
 from .urdf import FixedLink, Visual, dh_chain_urdf, xyz_rpy_to_transform
 
 __all__ = ['HAND_SIZE', 'WHITE', 'GREY', 'SKIN', 'LINK_RADIUS', 'segment_visuals', 'hand_visuals',
-           'arm_visuals', 'marker_links', 'description_urdf']
+           'quad_side', 'palm_size', 'arm_visuals', 'marker_links', 'description_urdf']
 
 #: Palm box extents in the hand frame [m]: x toward the fingers, y across, z palm thickness.
 HAND_SIZE = (0.07, 0.055, 0.025)
@@ -58,9 +61,44 @@ def segment_visuals(a: float, d: float, radius: float, rgba: tuple, joint_ball: 
     return out
 
 
-def hand_visuals(wrist_a: float, palm_rgba: tuple = WHITE) -> list[Visual]:
-    """Palm, fingers, thumb and wrist in the hand frame (palm face at z = 0, facing +z)."""
-    lx, ly, lz = HAND_SIZE
+def quad_side(dictionary: str, side: float, quiet_cells: int = 1) -> float:
+    """Side of a printed marker with its white quiet zone ``quiet_cells`` cells wide [m]."""
+    bits = int(aruco_dictionary(dictionary).markerSize)
+    return float(side) * (bits + 2 + 2 * quiet_cells) / (bits + 2)
+
+
+def palm_size(placements: Sequence[MarkerPlacement], quad: float) -> tuple[float, float, float]:
+    """Palm extents that hold every marker's printed quad: :data:`HAND_SIZE`, grown where needed.
+
+    Parameters
+    ----------
+    placements : sequence of MarkerPlacement
+        The markers on the hand.
+    quad : float
+        Printed side of each marker, quiet zone included [m] (:func:`quad_side`).
+
+    Returns
+    -------
+    tuple of 3 floats
+        ``(x, y, z)`` extents [m], centred on the hand frame's origin; the iCub's palm markers fit
+        the 7 x 5.5 cm palm, a 10 cm plate on a flange makes it 10 cm wide (the plate it is printed on).
+    """
+    half = np.array(HAND_SIZE[:2]) / 2
+    corners = np.c_[marker_corners(quad), np.ones(4)]
+    for m in placements:
+        xy = (np.asarray(m.hand_T_marker, dtype=float) @ corners.T)[:2].T
+        half = np.maximum(half, np.abs(xy).max(axis=0))
+    return float(2 * half[0]), float(2 * half[1]), HAND_SIZE[2]
+
+
+def hand_visuals(wrist_a: float, palm_rgba: tuple = WHITE,
+                 palm: tuple[float, float, float] = HAND_SIZE) -> list[Visual]:
+    """Palm, fingers, thumb and wrist in the hand frame (palm face at z = 0, facing +z).
+
+    ``palm`` is the palm box's extents [m] (:func:`palm_size`); the fingers and thumb keep
+    their size and stay at its edges.
+    """
+    lx, ly, lz = palm
     box = lambda size, xyz, rgba=SKIN: Visual('box', size, xyz_rpy_to_transform(xyz, [0, 0, 0]), rgba)  # noqa: E731
     wrist_len = max(wrist_a - lx / 2, 1e-3)
     return [
@@ -71,7 +109,8 @@ def hand_visuals(wrist_a: float, palm_rgba: tuple = WHITE) -> list[Visual]:
     ]
 
 
-def arm_visuals(dh: ArrayLike, joint_names: Sequence[str], rgba: tuple = WHITE) -> dict[str, list[Visual]]:
+def arm_visuals(dh: ArrayLike, joint_names: Sequence[str], rgba: tuple = WHITE,
+                palm: tuple[float, float, float] = HAND_SIZE) -> dict[str, list[Visual]]:
     """Geometry of a DH arm for :func:`body_schema.urdf.dh_chain_urdf`, keyed by link name.
 
     Parameters
@@ -81,6 +120,8 @@ def arm_visuals(dh: ArrayLike, joint_names: Sequence[str], rgba: tuple = WHITE) 
     joint_names : sequence of str, length L
     rgba : tuple of 4 floats
         Shell colour (a translucent one draws a ghost, e.g. an estimate over the real arm).
+    palm : tuple of 3 floats
+        Palm extents [m] (:func:`palm_size`).
 
     Returns
     -------
@@ -94,7 +135,7 @@ def arm_visuals(dh: ArrayLike, joint_names: Sequence[str], rgba: tuple = WHITE) 
     ball = [False] + [bool(lengths[i - 1] > 0.02) for i in range(1, len(joint_names))]
     visuals = {f'{j}_link': segment_visuals(a, d, LINK_RADIUS.get(j, 0.02), rgba, b)
                for j, (a, d, _alpha, _off), b in zip(joint_names, dh, ball)}
-    visuals['hand'] = hand_visuals(float(dh[-1, 0]), rgba)
+    visuals['hand'] = hand_visuals(float(dh[-1, 0]), rgba, palm)
     return visuals
 
 
@@ -128,6 +169,8 @@ def description_urdf(model: 'ArmModel', dh: ArrayLike | None = None, *, prefix: 
         same ``prefix`` and ``extra_links=marker_links(model)``.
     """
     dh = model.dh if dh is None else np.asarray(dh, dtype=float)
+    palm = palm_size(model.markers, quad_side(model.marker_dictionary, model.marker_side_length)) \
+        if model.markers else HAND_SIZE
     return dh_chain_urdf(dh, model.joint_names, model.limits, base=model.base, name=model.name,
-                         root_link=model.root_frame, visuals=arm_visuals(dh, model.joint_names, rgba),
+                         root_link=model.root_frame, visuals=arm_visuals(dh, model.joint_names, rgba, palm),
                          extra_links=marker_links(model), prefix=prefix)

@@ -120,3 +120,28 @@ def test_chain_transforms_are_the_urdf_joints_and_compose_to_the_hand_pose() -> 
         np.testing.assert_allclose(pose, robot.with_dh(dh).forward_kinematics(q), atol=1e-12)
     with pytest.raises(ValueError, match='7 finite joint positions'):
         chain_transforms(dh, robot.joint_names, q[:6])
+
+
+def test_the_palm_grows_to_hold_markers_larger_than_it_and_only_those() -> None:
+    from body_schema.arm_visuals import HAND_SIZE, description_urdf, palm_size, quad_side
+    from body_schema.robot import MarkerPlacement
+    icub = load_robot()
+    assert palm_size(icub.markers, quad_side(icub.marker_dictionary, icub.marker_side_length)) == HAND_SIZE
+    # An 8 cm DICT_4X4 marker is printed 8 * 8/6 cm wide with its one-cell quiet zone.
+    q = quad_side('DICT_4X4_50', 0.08)
+    assert q == pytest.approx(0.08 * 8 / 6)
+    centred = MarkerPlacement('plate', 0, np.eye(4))
+    assert palm_size([centred], q)[:2] == pytest.approx((q, q))
+    # Off-centre and turned by 45 deg about z: the palm reaches the farthest corner on each side.
+    t = np.eye(4)
+    t[:3, :3] = np.array([[np.cos(np.pi / 4), -np.sin(np.pi / 4), 0], [np.sin(np.pi / 4), np.cos(np.pi / 4), 0],
+                          [0, 0, 1]])
+    t[:3, 3] = [0.02, -0.01, 0.0]
+    x, y, z = palm_size([MarkerPlacement('turned', 1, t)], 0.06)
+    assert (x, y, z) == pytest.approx((2 * (0.02 + 0.03 * np.sqrt(2)), 2 * (0.01 + 0.03 * np.sqrt(2)), HAND_SIZE[2]))
+    # The published model draws the palm the UR5e's plate marker needs.
+    ur = load_robot('ur5e')
+    want = palm_size(ur.markers, quad_side(ur.marker_dictionary, ur.marker_side_length))
+    assert want[0] > HAND_SIZE[0]
+    palm = ET.fromstring(description_urdf(ur)).find("link[@name='hand']/visual/geometry/box")
+    assert [float(v) for v in palm.get('size').split()] == pytest.approx(want)

@@ -26,7 +26,7 @@ import pybullet as p
 from numpy.typing import ArrayLike, NDArray
 from pybullet_utils import bullet_client
 
-from body_schema.arm_visuals import HAND_SIZE, WHITE, arm_visuals
+from body_schema.arm_visuals import HAND_SIZE, WHITE, arm_visuals, palm_size, quad_side
 from body_schema.markers import aruco_dictionary, marker_corners
 from body_schema.robot import ArmModel, CameraIntrinsics, MarkerPlacement
 from body_schema.urdf import FixedLink, Visual, dh_chain_urdf
@@ -102,8 +102,7 @@ class MarkerSpec:
     @property
     def quad_side(self) -> float:
         """Side of the printed quad including the quiet zone [m]."""
-        bits = aruco_dictionary(self.dictionary).markerSize
-        return self.side_length * (bits + 2 + 2 * self.quiet_cells) / (bits + 2)
+        return quad_side(self.dictionary, self.side_length, self.quiet_cells)
 
     def corners_in_marker(self) -> NDArray[np.float64]:
         """The black square's corners in ArUco order (TL, TR, BR, BL), shape (4, 3)."""
@@ -164,18 +163,17 @@ class SimWorld:
             raise ValueError(f'physics_step must be > 0 s, got {physics_step}')
         dictionary = marker_dictionary or robot.marker_dictionary
         side = robot.marker_side_length if marker_side_length is None else float(marker_side_length)
-        if not 0 < side < 0.06:
-            raise ValueError(f'marker side length must be in (0, 0.06) m to fit the palm, got {side}')
+        if not 0 < side <= 0.5:
+            raise ValueError(f'marker side length must be in (0, 0.5] m, got {side}')
         ids = [m.marker_id for m in robot.markers] if marker_ids is None else [int(i) for i in marker_ids]
         if len(ids) != len(robot.markers) or len(set(ids)) != len(ids):
             raise ValueError(f'marker_ids must be {len(robot.markers)} distinct ids, got {ids}')
         self.markers = tuple(
             MarkerSpec(MarkerPlacement(m.name, i, m.hand_T_marker), dictionary, side)
             for m, i in zip(robot.markers, ids))
-        for spec in self.markers:
-            if spec.quad_side > min(HAND_SIZE[:2]) + 1e-9:
-                raise ValueError(f'marker {spec.placement.name!r}: printed side {spec.quad_side:.4f} m '
-                                 f'(with quiet zone) does not fit on the {HAND_SIZE[:2]} m palm')
+        # The palm is the plate the markers are printed on: it grows to hold them (the iCub's
+        # fit its 7 x 5.5 cm palm; a 10 cm target on a flange makes it 10 cm wide).
+        self.palm = palm_size([s.placement for s in self.markers], self.markers[0].quad_side)
         self.physics_step = float(physics_step)
         self.head_pose: NDArray[np.float64] | None = None
         self.renders = 0
@@ -201,7 +199,7 @@ class SimWorld:
         with open(quad, 'w') as f:
             f.write(_grid_obj(MARKER_GRID))
         names = self.robot.joint_names
-        visuals = arm_visuals(self.dh, names)
+        visuals = arm_visuals(self.dh, names, palm=self.palm)
         extra = []
         for spec in self.markers:
             s = spec.quad_side

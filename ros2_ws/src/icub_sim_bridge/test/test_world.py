@@ -135,6 +135,28 @@ def test_bad_world_arguments_are_named() -> None:
         SimWorld(ROBOT, marker_ids=[3, 3])
     with pytest.raises(ValueError, match='unknown ArUco dictionary'):
         SimWorld(ROBOT, marker_dictionary='DICT_NOPE')
+    with pytest.raises(ValueError, match=r'marker side length .* got 0.0'):
+        SimWorld(ROBOT, marker_side_length=0.0)
+
+
+def test_a_plate_marker_larger_than_the_palm_is_carried_and_seen_whole() -> None:
+    """The UR5e's 8 cm flange target: the palm grows to the printed plate and the camera 1.7 m
+    away sees the whole black square (the palm's edge or the wrist does not cut into it)."""
+    ur = load_robot('ur5e')
+    with SimWorld(ur) as w:
+        spec = w.markers[0]
+        assert spec.side_length == pytest.approx(0.08)
+        assert min(w.palm[:2]) == pytest.approx(spec.quad_side) and spec.quad_side > 0.07
+        q = ur.calibration_box.mean(axis=1)
+        w.set_joint_positions(q)
+        cam, k = ur.camera_pose('left'), ur.camera
+        gray = cv2.cvtColor(w.render(cam, k), cv2.COLOR_RGB2GRAY)
+        corners, ids, _ = cv2.aruco.ArucoDetector(aruco_dictionary(spec.dictionary)).detectMarkers(gray)
+        assert ids is not None and ids.ravel().tolist() == [spec.placement.marker_id]
+        marker = ur.forward_kinematics(q) @ spec.placement.hand_T_marker
+        pts = (marker @ np.c_[spec.corners_in_marker(), np.ones(4)].T).T[:, :3]
+        want = project_points(pts, cam, k.K)
+        np.testing.assert_allclose(corners[0].reshape(4, 2), want, atol=1.0)
 
 
 def test_two_worlds_coexist() -> None:
@@ -193,3 +215,21 @@ def test_an_unchanged_scene_is_rendered_once_and_any_change_renders_again() -> N
         w.set_head_pose(ROBOT.eyes.head_pose)
         w.render(cam, intr)
         assert w.renders == n + 4
+
+
+def test_the_ur5e_plate_clears_the_flange_under_the_issues_mounting_error() -> None:
+    """``--marker-error "0.005 5"`` moves the drawn plate: every corner must stay above the hand's
+    face (z = 0) by more than TinyRenderer's depth resolution at 1.7 m, or the hand shows through
+    the marker (at 3 mm proud most detections of such a run were lost)."""
+    from body_schema.arm_visuals import quad_side
+    from body_schema.extrinsics import corrections, random_delta
+    ur = load_robot('ur5e')
+    half = quad_side(ur.marker_dictionary, ur.marker_side_length) / 2
+    corners = np.array([[half, half, 0, 1], [-half, half, 0, 1], [-half, -half, 0, 1], [half, -half, 0, 1]]).T
+    nominal = ur.markers[0].hand_T_marker
+    lowest = []
+    for seed in range(300):
+        delta = random_delta(np.random.default_rng([seed, 16]), 0.005, np.radians(5.0))
+        board = corrections(np.eye(4), nominal, np.zeros(6), delta)[1]
+        lowest.append((board @ nominal @ corners)[2].min())
+    assert min(lowest) > 0.002

@@ -258,6 +258,13 @@ def evaluate_bag(path: str | Path, settings: EvaluationSettings = EvaluationSett
             raise BagFormatError(f'{path}: no initial estimate and covariance recorded')
         start()
 
+    if progress:
+        # Nothing follows the last iteration: what the recorder logged after its record (a topic it
+        # fell behind on, under load) belongs to it, so the last row is the bag's final state.
+        record = progress[-1][0]
+        progress[-1] = (record, estimator.dh.copy(), None if online is None else online.copy(),
+                        estimator.counters['updates'], estimator.P_dh.copy())
+
     def score(dh: NDArray[np.float64] | None) -> tuple[float, float]:
         if dh is None:
             return float('nan'), float('nan')

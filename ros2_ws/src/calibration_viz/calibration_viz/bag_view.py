@@ -259,6 +259,9 @@ def main(argv: list[str] | None = None) -> int:
     except (FileNotFoundError, BagError) as e:
         print(f'bag_view: {e}', file=sys.stderr)
         return 2
+    if args.metrics is not None and not args.metrics.is_file():
+        print(f'bag_view: no such metrics file: {args.metrics}', file=sys.stderr)
+        return 2
     metrics = args.metrics or (args.bag.parent / 'metrics.csv')
     metrics = metrics if metrics.is_file() else None
 
@@ -273,6 +276,11 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     url = f'http://127.0.0.1:{args.port}/?url=rerun%2Bhttp://127.0.0.1:{args.port + 1}/proxy'
     if args.screenshot is not None:
+        import shutil
+
+        if not any(map(shutil.which, ('chromium', 'chromium-browser', 'google-chrome'))):
+            print('bag_view: --screenshot needs chromium on PATH (apt-get install chromium)', file=sys.stderr)
+            return 2
         _check_free(args.port, args.port + 1)
         # Served from a saved recording by Rerun's own server (a second process): the viewer then
         # loads it at its own pace while this process only drives the browser.

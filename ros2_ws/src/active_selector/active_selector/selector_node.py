@@ -71,11 +71,10 @@ from body_schema.extrinsics import Extrinsics, parse_std
 from calibration_interfaces.contract import SENSOR
 from calibration_interfaces.messages import (MessageFormatError, joints_in_order, msg_to_covariance, msg_to_table,
                                              pose_msg_to_matrix, stamp_to_seconds)
-from calibration_interfaces.node_util import WarnOnce, declare_settings, qos_profile, spin_node
+from calibration_interfaces.node_util import WarnOnce, WarnThrottled, declare_settings, qos_profile, spin_node
 from calibration_interfaces.noise import NoiseSettings, PoseDependentSettings
 from calibration_interfaces.outcome import (DETECTOR_DIAGNOSTIC, FrameStatus, StatusFormatError, decode_frame,
                                              decode_status)
-from calibration_interfaces.throttle import KeyedThrottle
 
 from .loop import CalibrationLoop, Iteration, LoopSettings, Phase
 from .node_settings import SelectorNodeSettings, StrategySettings
@@ -120,7 +119,7 @@ class SelectorNode(Node):
         self.camera_pose: np.ndarray | None = None
         self._last_wait_report = 0.0
         self._warn_once = WarnOnce(self)
-        self._throttle = KeyedThrottle(2.0)
+        self._warn = WarnThrottled(self)
 
         camera_pose = f'/camera/{self.settings.eye}/pose'
         self.pub_cmd = self.create_publisher(JointTrajectory, '/arm/command', qos_profile('/arm/command'))
@@ -263,12 +262,6 @@ class SelectorNode(Node):
             if frame.status is FrameStatus.BAD_INPUT and self.loop.bad_frame(frame.stamp, status.message):
                 self._warn(f'bad_input.{frame.kind}', f'the attempt frame at {frame.stamp:.3f} s was bad input '
                            f'({status.message}); not counted as the hand hidden, waiting for the next')
-
-    def _warn(self, key: str, text: str) -> None:
-        """A warning throttled per kind of problem (``key``), not per call site."""
-        out = self._throttle(key, text)
-        if out is not None:
-            self.get_logger().warning(out)
 
     def on_status(self, msg: DiagnosticStatus) -> None:
         try:

@@ -29,8 +29,9 @@ from std_msgs.msg import String
 from . import startup
 from .contract import RUN_ID_TOPIC, Durability, QosSpec, Reliability, RunSettings, topic
 from .parameters import ParameterSpec, parameter_specs, settings_from_parameters
+from .throttle import KeyedThrottle
 
-__all__ = ['qos_profile', 'descriptor', 'declare_settings', 'WarnOnce', 'message_class', 'RunGuard', 'spin_node',
+__all__ = ['qos_profile', 'descriptor', 'declare_settings', 'WarnOnce', 'WarnThrottled', 'message_class', 'RunGuard', 'spin_node',
            'RUN_CONFLICT_STATUS']
 
 #: Exit status of a node stopped by :class:`RunGuard`.
@@ -138,6 +139,28 @@ class WarnOnce:
         if key not in self.keys:
             self.keys.add(key)
             self._logger.warning(text)
+
+
+class WarnThrottled:
+    """Logs warnings throttled per kind of problem (:class:`~calibration_interfaces.throttle.KeyedThrottle`):
+    the first of each key at once, then one per ``period`` seconds with the count suppressed.
+
+    Parameters
+    ----------
+    node : Node
+        Whose logger is used.
+    period : float
+        Seconds between two warnings of one key.
+    """
+
+    def __init__(self, node: Node, period: float = 2.0) -> None:
+        self._node = node
+        self.throttle = KeyedThrottle(period)
+
+    def __call__(self, key: str, text: str) -> None:
+        out = self.throttle(key, text)
+        if out is not None:
+            self._node.get_logger().warning(out)   # the node's logger at the time (tests replace it)
 
 
 def message_class(type_name: str) -> type:

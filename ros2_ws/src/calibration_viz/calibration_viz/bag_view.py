@@ -171,6 +171,13 @@ def log_bag(bag: str | Path, metrics_csv: str | Path | None = None, history: int
     rr.send_blueprint(blueprint())
 
 
+def find_browser() -> str | None:
+    """The path of a Chromium-family browser on PATH (Debian's ``chromium`` first), or None."""
+    import shutil
+
+    return next((p for p in map(shutil.which, ('chromium', 'chromium-browser', 'google-chrome')) if p), None)
+
+
 def _screenshot(url: str, out: Path, wait_s: float, size: tuple[int, int]) -> None:
     """Load ``url`` in headless Chromium (software WebGL), wait ``wait_s`` and save a PNG.
 
@@ -180,14 +187,13 @@ def _screenshot(url: str, out: Path, wait_s: float, size: tuple[int, int]) -> No
     import asyncio
     import base64
     import json
-    import shutil
     import subprocess
     import tempfile
     import urllib.request
 
     import websockets
 
-    browser = next((p for p in map(shutil.which, ('chromium', 'chromium-browser', 'google-chrome')) if p), None)
+    browser = find_browser()
     if browser is None:
         raise FileNotFoundError('no chromium on PATH (apt-get install chromium)')
     with socket.socket() as s:
@@ -276,9 +282,7 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     url = f'http://127.0.0.1:{args.port}/?url=rerun%2Bhttp://127.0.0.1:{args.port + 1}/proxy'
     if args.screenshot is not None:
-        import shutil
-
-        if not any(map(shutil.which, ('chromium', 'chromium-browser', 'google-chrome'))):
+        if find_browser() is None:
             print('bag_view: --screenshot needs chromium on PATH (apt-get install chromium)', file=sys.stderr)
             return 2
         _check_free(args.port, args.port + 1)

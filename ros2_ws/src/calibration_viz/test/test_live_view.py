@@ -5,7 +5,6 @@ needs Debian's ``chromium`` (``.ci/run`` installs it) and is skipped with the re
 """
 from __future__ import annotations
 
-import shutil
 import socket
 import subprocess
 import time
@@ -20,11 +19,12 @@ import zstandard
 from websockets.sync.client import connect
 
 from body_schema.robot import load_robot
+from calibration_viz.bag_view import find_browser
 from calibration_viz.live_view import LiveView
 from calibration_viz.scene import SceneState
 
 ROBOT = load_robot()
-CHROMIUM = next((p for p in map(shutil.which, ('chromium', 'chromium-browser', 'google-chrome')) if p), None)
+CHROMIUM = find_browser()
 
 
 def _free_port() -> int:

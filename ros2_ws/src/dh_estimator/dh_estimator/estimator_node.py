@@ -70,10 +70,9 @@ from body_schema.arm_visuals import description_urdf
 from calibration_interfaces.contract import ESTIMATE_FRAME_PREFIX, RELIABLE, SENSOR
 from calibration_interfaces.dh_file import read_dh_file
 from calibration_interfaces.messages import covariance_to_msg, table_to_msg
-from calibration_interfaces.node_util import WarnOnce, declare_settings, qos_profile, spin_node
+from calibration_interfaces.node_util import WarnOnce, WarnThrottled, declare_settings, qos_profile, spin_node
 from calibration_interfaces.noise import NoiseSettings
 from calibration_interfaces.outcome import Outcome, encode_status
-from calibration_interfaces.throttle import KeyedThrottle
 
 from .estimator import EstimatorSettings, OnlineEstimator
 from .node_settings import EstimatorNodeSettings
@@ -116,7 +115,7 @@ class EstimatorNode(Node):
 
         self.last_update_s = 0.0
         self._warn_once = WarnOnce(self)
-        self._throttle = KeyedThrottle(THROTTLE_S)
+        self._warn = WarnThrottled(self, THROTTLE_S)
         self.pub_estimate = self.create_publisher(Float64MultiArray, '/body_schema/estimate',
                                                   qos_profile('/body_schema/estimate'))
         self.pub_cov = self.create_publisher(Float64MultiArray, '/body_schema/covariance',
@@ -165,13 +164,6 @@ class EstimatorNode(Node):
             self.get_logger().warning(f'the clock stepped back (now {self._now():.3f} s): joint states of the '
                                       f'old timeline forgotten ({self.pairer.counters["clock_resets"]} restarts)')
         self._handle(results)
-
-    def _warn(self, key: str, text: str) -> None:
-        """A warning throttled per kind of problem (``key``): a burst of one kind is not a
-        screenful, and does not hide another kind."""
-        out = self._throttle(key, text)
-        if out is not None:
-            self.get_logger().warning(out)
 
     def on_joint_state(self, msg: JointState) -> None:
         self._feed('/joint_states', msg)

@@ -79,8 +79,7 @@ from body_schema.sampling import perturb_dh
 from calibration_interfaces.contract import RELIABLE, optical_frame
 from calibration_interfaces.dh_file import read_dh_file
 from calibration_interfaces.messages import extrinsics_to_msg, matrix_to_pose_msg, table_to_msg
-from calibration_interfaces.node_util import declare_settings, qos_profile, spin_node
-from calibration_interfaces.throttle import KeyedThrottle
+from calibration_interfaces.node_util import WarnThrottled, declare_settings, qos_profile, spin_node
 
 from .body_change import parse_body_change
 from .camera import degrade
@@ -103,7 +102,7 @@ class SimNode(Node):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__('icub_sim', **kwargs)
-        self._throttle = KeyedThrottle(2.0)
+        self._warn = WarnThrottled(self)
         self.set_parameters([Parameter('use_sim_time', Parameter.Type.BOOL, True)])
         s = self.settings = declare_settings(self, SimSettings, read_only=True)
         self.robot = r = load_robot(s.robot)
@@ -328,10 +327,8 @@ class SimNode(Node):
         except CommandError as exc:
             self.follower.stop()
             # Throttled per reason (numbers aside): a burst of bad commands is not a screenful.
-            text = self._throttle(re.sub(r'[-+.\d]+', '#', str(exc)),
-                                  f'rejected /arm/command: {exc}; the arm holds at its present position')
-            if text is not None:
-                self.get_logger().warning(text)
+            self._warn(re.sub(r'[-+.\d]+', '#', str(exc)),
+                       f'rejected /arm/command: {exc}; the arm holds at its present position')
             return
         duration = self.follower.start(wp)
         self.get_logger().info(f'moving to {np.round(np.degrees(wp.targets[-1]), 1).tolist()} deg '

@@ -59,11 +59,10 @@ from sensor_msgs.msg import CameraInfo, Image
 from body_schema import load_robot
 from calibration_interfaces.contract import SENSOR
 from calibration_interfaces.messages import matrix_to_pose_msg, pose_msg_to_matrix
-from calibration_interfaces.node_util import WarnOnce, declare_settings, qos_profile, spin_node
+from calibration_interfaces.node_util import WarnOnce, WarnThrottled, declare_settings, qos_profile, spin_node
 from calibration_interfaces.noise import NoiseSettings, PoseDependentSettings
 from calibration_interfaces.outcome import DETECTOR_DIAGNOSTIC, FrameStatus, encode_frame
 from calibration_interfaces.parameters import setting
-from calibration_interfaces.throttle import KeyedThrottle
 
 from .detection import BadInput, DetectorConfig, FrameResult, HandPoseEstimator
 from .frame import DISTORTION_MODELS, CameraCalibration, calibration_from_info, judge_frame
@@ -116,7 +115,7 @@ class DetectorNode(Node):
         self.root_frame = self.model.root_frame
         self.stereo = s.use_right_eye
         self._warn_once = WarnOnce(self)
-        self._throttle = KeyedThrottle(2.0)
+        self._warn = WarnThrottled(self)
         self.frames_processed = 0
         self.frame_counts = {s: 0 for s in FrameStatus}     # published verdicts, for tests and logs
         self.eyes = {name: _Eye(name) for name in (('left', 'right') if self.stereo else ('left',))}
@@ -140,12 +139,6 @@ class DetectorNode(Node):
             f'eyes {list(self.eyes)}')
 
     # ------------------------------------------------------------------ inputs
-
-    def _warn(self, key: str, text: str) -> None:
-        """A warning throttled per kind of problem (``key``), not per call site."""
-        out = self._throttle(key, text)
-        if out is not None:
-            self.get_logger().warning(out)
 
     def _on_info(self, eye: _Eye, msg: CameraInfo) -> None:
         try:

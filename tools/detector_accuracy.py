@@ -34,8 +34,8 @@ from body_schema.robot import ArmModel
 
 from marker_detector.detection import DetectorConfig, HandPoseEstimator, MarkerPose, gate_marker
 
-__all__ = ['FLIP_DEG', 'Frame', 'FrameScores', 'NoiseFit', 'collect', 'evaluate', 'fit_noise', 'summarize',
-           'time_frames', 'binned']
+__all__ = ['FLIP_DEG', 'Frame', 'FrameScores', 'NoiseFit', 'collect', 'draw_scores', 'evaluate', 'fit_noise',
+           'summarize', 'time_frames', 'binned']
 
 
 @dataclass
@@ -117,7 +117,7 @@ def collect(model: ArmModel, world: Any, configs: NDArray[np.float64],
     -------
     list of Frame, configuration-major.
     """
-    est = HandPoseEstimator(model, PoseDependentNoise(), config or DetectorConfig())
+    est = HandPoseEstimator(model, PoseDependentNoise.for_robot(model), config or DetectorConfig())
     rng = np.random.default_rng(seed)
     frames = []
     cams = {(eye, size): (model.camera.scaled(*size), model.camera_pose(eye)) for eye, size in views}
@@ -289,6 +289,19 @@ def fit_noise(outcome: FrameScores, exclude_flips: bool = True) -> NoiseFit:
     nll_pdn, cov_pdn = score(pdn)
     nll_cn, cov_cn = score(cn)
     return NoiseFit(pdn, cn, int(ok.sum()), nll_pdn, nll_cn, cov_pdn, cov_cn)
+
+
+def draw_scores(law: NoiseModel, n: int, seed: int, r_range: tuple[float, float] = (0.15, 0.5)) -> FrameScores:
+    """``n`` successful frames whose errors are drawn from ``law`` (a known truth for the fits),
+    at distances uniform in ``r_range`` [m] and viewing angles uniform in 0-85 deg."""
+    rng = np.random.default_rng(seed)
+    r, phi = rng.uniform(*r_range, n), rng.uniform(0, 85, n)
+    vp, vo = (np.broadcast_to(v, r.shape) for v in law.variances(r, phi))
+    pv = rng.normal(size=(n, 3)) * np.sqrt(vp)[:, None]
+    ov = rng.normal(size=(n, 3)) * np.sqrt(vo)[:, None]
+    ones = np.ones(n, bool)
+    return FrameScores(ones, ones, np.linalg.norm(pv, axis=1), np.linalg.norm(ov, axis=1), pv, ov, r, phi,
+                       np.ones(n, np.int64))
 
 
 # --------------------------------------------------------------------------------------------

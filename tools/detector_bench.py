@@ -91,7 +91,7 @@ def run(n: int = 500, seed: int = 0, noise_std: float = 2.0, robot_name: str = '
     t_render = time.perf_counter() - t_start
 
     cfg = DetectorConfig()
-    est = HandPoseEstimator(model, PoseDependentNoise(), cfg)
+    est = HandPoseEstimator(model, PoseDependentNoise.for_robot(model), cfg)
     lines = ['## marker_detector', '',
              f'Accuracy of the ArUco hand pose against the true forward kinematics, in the '
              f'simulator (`icub_sim_bridge.world`, TinyRenderer, additive pixel noise sigma '
@@ -150,7 +150,7 @@ def run(n: int = 500, seed: int = 0, noise_std: float = 2.0, robot_name: str = '
               '|---|---|---|---|---|---|---|---|']
     for ratio, margin in [(1.0, 0.0), (1.5, 0.0), (1.5, 0.05), (1.5, 0.1), (2.0, 0.0), (2.0, 0.1),
                           (2.0, 0.2), (3.0, 0.1)]:
-        e = HandPoseEstimator(model, PoseDependentNoise(),
+        e = HandPoseEstimator(model, PoseDependentNoise.for_robot(model),
                               replace(cfg, ambiguity_ratio=ratio, ambiguity_margin_px=margin))
         s = summarize(evaluate(by_view[('left', RES_LOW)], e))
         tag = ' (default)' if (ratio, margin) == (cfg.ambiguity_ratio, cfg.ambiguity_margin_px) else ''

@@ -6,20 +6,12 @@ import pytest
 
 from body_schema import load_robot
 from body_schema.noise import PoseDependentNoise
-from tools.detector_accuracy import Frame, FrameScores, _fit_law, evaluate, fit_noise, summarize
+from tools.detector_accuracy import Frame, FrameScores, _fit_law, draw_scores, evaluate, fit_noise, summarize
 from marker_detector.detection import DetectedMarker, HandPoseEstimator, solve_marker_pose
 
 
 def _draw(law: PoseDependentNoise, n: int, seed: int) -> FrameScores:
-    rng = np.random.default_rng(seed)
-    r = rng.uniform(0.15, 0.5, n)
-    phi = rng.uniform(0, 85, n)
-    vp, vo = law.variances(r, phi)
-    pv = rng.normal(size=(n, 3)) * np.sqrt(vp)[:, None]
-    ov = rng.normal(size=(n, 3)) * np.sqrt(vo)[:, None]
-    ones = np.ones(n, bool)
-    return FrameScores(ones, ones, np.linalg.norm(pv, axis=1), np.linalg.norm(ov, axis=1), pv, ov, r, phi,
-                   np.ones(n, np.int64))
+    return draw_scores(law, n, seed)
 
 
 def test_fit_recovers_known_law() -> None:

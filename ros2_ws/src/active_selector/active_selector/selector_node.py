@@ -93,9 +93,11 @@ class SelectorNode(Node):
         strategy = declare_settings(self, StrategySettings)
         planner_settings = declare_settings(self, PlannerSettings, selector=strategy.config())
         loop_settings = declare_settings(self, LoopSettings)
-        noise = declare_settings(self, NoiseSettings).build(declare_settings(self, PoseDependentSettings))
+        noise_settings = declare_settings(self, NoiseSettings)
+        pdn = declare_settings(self, PoseDependentSettings)
 
         self.model = load_robot(self.settings.robot)
+        noise = noise_settings.build(self.model, pdn)
         # Extrinsics the estimator estimates with the table: their columns enter the cost.
         priors = [parse_std(v, k) for k, v in (('camera_prior', self.settings.camera_prior),
                                                 ('marker_prior', self.settings.marker_prior))]

@@ -21,7 +21,7 @@ from typing import Protocol, Sequence
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .robot import MarkerPlacement
+from .robot import ArmModel, MarkerPlacement
 
 __all__ = ['view_geometry', 'NoiseModel', 'PoseDependentNoise', 'ConstantNoise', 'NOISE_MODELS', 'noise_model',
            'sample_pose']
@@ -160,6 +160,13 @@ class PoseDependentNoise(_Base):
         if self.floor_pos == 0 and self.floor_rot == 0 and (self.b_pos == 0 or self.b_rot == 0):
             raise ValueError('PoseDependentNoise: with zero floors and b = 0 the covariance can be '
                              'singular; give a positive floor')
+
+    @classmethod
+    def for_robot(cls, model: ArmModel, **overrides: float) -> 'PoseDependentNoise':
+        """The law fitted for a description's camera and marker (its ``noise_model:`` block,
+        ``python -m tools.fit_noise``), the built-in defaults for coefficients it does not set,
+        then ``overrides`` (e.g. a node's ``pdn_*`` parameters)."""
+        return cls(**{**model.noise_law, **overrides})
 
     @classmethod
     def paper(cls, a: float, b: float) -> 'PoseDependentNoise':

@@ -139,6 +139,10 @@ class ArmModel:
         Intrinsics shared by every camera.
     scenery : tuple of SceneryBox
         Static context the simulator draws (no effect on the kinematics).
+    noise_law : dict of str to float
+        Coefficients of the pose-dependent observation-noise law fitted for this description's
+        camera and marker (``noise_model:`` in the YAML; keys of
+        :class:`body_schema.noise.PoseDependentNoise`); empty: the built-in defaults.
     """
 
     name: str
@@ -155,6 +159,7 @@ class ArmModel:
     markers: tuple[MarkerPlacement, ...] = ()
     fixed_cameras: dict[str, NDArray[np.float64]] = field(default_factory=dict, compare=False)
     scenery: tuple[SceneryBox, ...] = ()
+    noise_law: dict[str, float] = field(default_factory=dict, compare=False)
     extra: dict[str, Any] = field(default_factory=dict, compare=False, repr=False)
 
     @property
@@ -364,8 +369,10 @@ def robot_from_dict(data: dict[str, Any], source: str = '<dict>') -> ArmModel:
     if 'hand_markers' in data:
         dictionary, side, markers = _markers(data['hand_markers'], where + 'hand_markers.', scale)
 
+    noise_law = _noise_law(data['noise_model'], where + 'noise_model') if 'noise_model' in data else {}
+
     known = {'name', 'root_frame', 'angle_unit', 'H0', 'torso', 'joints', 'calibration_box',
-             'eyes', 'camera', 'hand_markers', 'fixed_cameras', 'scenery'}
+             'eyes', 'camera', 'hand_markers', 'fixed_cameras', 'scenery', 'noise_model'}
     return ArmModel(
         name=str(data.get('name', Path(source).stem)),
         joint_names=tuple(names),
@@ -381,8 +388,30 @@ def robot_from_dict(data: dict[str, Any], source: str = '<dict>') -> ArmModel:
         markers=markers,
         fixed_cameras=fixed,
         scenery=scenery,
+        noise_law=noise_law,
         extra={k: v for k, v in data.items() if k not in known},
     )
+
+
+#: The keys a description's ``noise_model:`` block may set (units as in PoseDependentNoise).
+NOISE_LAW_KEYS: tuple[str, ...] = ('a_pos', 'b_pos', 'floor_pos', 'a_rot', 'b_rot', 'floor_rot')
+
+
+def _noise_law(n: Any, where: str) -> dict[str, float]:
+    if not isinstance(n, dict):
+        raise RobotDescriptionError(f'{where}: must be a mapping of {list(NOISE_LAW_KEYS)}')
+    unknown = sorted(set(n) - set(NOISE_LAW_KEYS))
+    if unknown:
+        raise RobotDescriptionError(f'{where}: unknown keys {unknown}; expected some of {list(NOISE_LAW_KEYS)}')
+    law = {}
+    for k, v in n.items():
+        try:
+            law[k] = float(v)
+        except (TypeError, ValueError) as exc:
+            raise RobotDescriptionError(f'{where}.{k}: must be a number, got {v!r}') from exc
+        if not np.isfinite(law[k]) or law[k] < 0:
+            raise RobotDescriptionError(f'{where}.{k}: must be finite and >= 0, got {v!r}')
+    return law
 
 
 def _eyes(e: Any, h0: NDArray[np.float64], where: str, scale: float) -> EyeChain:

@@ -49,6 +49,10 @@ def test_with_dh_builds_another_model():
     (lambda d: d['calibration_box'].__setitem__(0, [-120.0, 0.0]), r'calibration_box\[0\] \(r_shoulder_pitch\)'),
     (lambda d: d.pop('joints'), r'joints: must be a non-empty list'),
     (lambda d: d['hand_markers'].__setitem__('side_length', -1), r'hand_markers\.side_length'),
+    (lambda d: d.__setitem__('noise_model', {'a_pos': -1e-7}), r"noise_model\.a_pos: must be finite and >= 0, got -1e-07"),
+    (lambda d: d.__setitem__('noise_model', {'a_p0s': 1e-7}), r"noise_model: unknown keys \['a_p0s'\]"),
+    (lambda d: d.__setitem__('noise_model', {'b_rot': 'small'}), r"noise_model\.b_rot: must be a number, got 'small'"),
+    (lambda d: d.__setitem__('noise_model', [1e-7]), r'noise_model: must be a mapping'),
 ])
 def test_bad_descriptions_name_the_field(tmp_path, raw, mutate, message):
     data = copy.deepcopy(raw)
@@ -91,3 +95,19 @@ def test_fixed_camera_entries_are_validated():
     doc['fixed_cameras'] = [{'name': 'a', 'xyz': [0, 0, 0], 'rpy': [0, 0, 0]}] * 2
     with pytest.raises(RobotDescriptionError, match='unique non-empty name'):
         robot_from_dict(doc)
+
+
+def test_a_fitted_noise_law_replaces_the_defaults_it_names(tmp_path, raw):
+    from body_schema.noise import PoseDependentNoise
+
+    assert body_schema.load_robot('icub_right_arm').noise_law == {}      # the built-in fit is the iCub's
+    assert PoseDependentNoise.for_robot(body_schema.load_robot('icub_right_arm')) == PoseDependentNoise()
+    data = copy.deepcopy(raw)
+    data['noise_model'] = {'a_pos': 3e-7, 'floor_rot': 1e-6}
+    arm = body_schema.load_robot(_write(tmp_path, data))
+    law = PoseDependentNoise.for_robot(arm)
+    assert (law.a_pos, law.floor_rot, law.b_rot) == (3e-7, 1e-6, PoseDependentNoise().b_rot)
+    assert PoseDependentNoise.for_robot(arm, a_pos=1e-5).a_pos == 1e-5          # a node parameter wins
+    ur = PoseDependentNoise.for_robot(body_schema.load_robot('ur5e'))
+    # The UR5e's 1280x1024 camera and 8 cm marker: far below the iCub law at its distance (1.7 m, 20 deg).
+    assert ur.variances(1.7, 20.0)[1] < PoseDependentNoise().variances(1.7, 20.0)[1] / 50

@@ -11,28 +11,42 @@ from dataclasses import dataclass
 import numpy as np
 
 from body_schema.noise import NOISE_MODELS, ConstantNoise, PoseDependentNoise, noise_model
+from body_schema.robot import ArmModel
 
 from .parameters import setting
 
 __all__ = ['NoiseSettings', 'PoseDependentSettings']
 
 _CN = ConstantNoise()        # fitted defaults live in body_schema.noise
-_PDN = PoseDependentNoise()
+
+_FROM_DESCRIPTION = ("; negative: the robot description's (its noise_model block, fitted for its camera and "
+                     "marker by tools.fit_noise), or the built-in iCub fit")
 
 
 @dataclass(frozen=True)
 class PoseDependentSettings:
-    """Coefficients of the pose-dependent law (paper eq. 13, one law per block)."""
+    """Coefficients of the pose-dependent law (paper eq. 13, one law per block).
 
-    pdn_a_pos: float = setting(_PDN.a_pos, 'Pose-dependent position variance per r^2', (0.0, 1.0))
-    pdn_b_pos: float = setting(_PDN.b_pos, 'Pose-dependent position variance per (phi-45)^2', (0.0, 1.0))
-    pdn_a_rot: float = setting(_PDN.a_rot, 'Pose-dependent orientation variance per r^2', (0.0, 10.0))
-    pdn_b_rot: float = setting(_PDN.b_rot, 'Pose-dependent orientation variance per (phi-45)^2', (0.0, 1.0))
+    Each is negative by default: the law then comes from the robot description
+    (:meth:`body_schema.noise.PoseDependentNoise.for_robot`), so a camera and marker of another size
+    need no parameter; a value set here overrides that coefficient alone.
+    """
 
-    def build(self) -> PoseDependentNoise:
-        """The model (floors: the fitted defaults)."""
-        return PoseDependentNoise(self.pdn_a_pos, self.pdn_b_pos, self.pdn_a_rot, self.pdn_b_rot,
-                                  _PDN.floor_pos, _PDN.floor_rot)
+    pdn_a_pos: float = setting(-1.0, 'Pose-dependent position variance per r^2 [m^2/m^2]' + _FROM_DESCRIPTION, (-1.0, 1.0))
+    pdn_b_pos: float = setting(-1.0, 'Pose-dependent position variance per (phi-45)^2 [m^2/deg^2]'
+                               + _FROM_DESCRIPTION, (-1.0, 1.0))
+    pdn_a_rot: float = setting(-1.0, 'Pose-dependent orientation variance per r^2 [rad^2/m^2]' + _FROM_DESCRIPTION,
+                               (-1.0, 10.0))
+    pdn_b_rot: float = setting(-1.0, 'Pose-dependent orientation variance per (phi-45)^2 [rad^2/deg^2]'
+                               + _FROM_DESCRIPTION, (-1.0, 1.0))
+
+    def build(self, model: ArmModel | None = None) -> PoseDependentNoise:
+        """The description's law (the built-in defaults without ``model``) with the coefficients
+        set here (>= 0) in place of its own."""
+        given = {k: getattr(self, f'pdn_{k}') for k in ('a_pos', 'b_pos', 'a_rot', 'b_rot')}
+        overrides = {k: v for k, v in given.items() if v >= 0}
+        return PoseDependentNoise.for_robot(model, **overrides) if model is not None \
+            else PoseDependentNoise(**overrides)
 
 
 @dataclass(frozen=True)
@@ -51,8 +65,12 @@ class NoiseSettings:
         """Whether the CN baseline is selected."""
         return self.noise_model == 'constant'
 
-    def build(self, pose_dependent: PoseDependentSettings = PoseDependentSettings()) -> PoseDependentNoise | ConstantNoise:
+    def build(self, model: ArmModel | None = None,
+              pose_dependent: PoseDependentSettings = PoseDependentSettings()) -> PoseDependentNoise | ConstantNoise:
         """The selected model, through the :func:`body_schema.noise.noise_model` factory.
+
+        ``model`` (the robot description) gives the pose-dependent law's coefficients
+        (:meth:`PoseDependentSettings.build`); without it, the built-in defaults.
 
         Raises
         ------
@@ -62,6 +80,6 @@ class NoiseSettings:
         if self.constant:
             return noise_model('constant', sigma_pos=self.cn_sigma_pos,
                                sigma_rot=float(np.radians(self.cn_sigma_rot_deg)))
-        p = pose_dependent.build()
+        p = pose_dependent.build(model)
         return noise_model(self.noise_model, a_pos=p.a_pos, b_pos=p.b_pos, a_rot=p.a_rot, b_rot=p.b_rot,
                            floor_pos=p.floor_pos, floor_rot=p.floor_rot)

@@ -224,3 +224,19 @@ def test_frame_verdict_round_trip_and_levels() -> None:
     assert not Outcome.BAD_INPUT.informs_visibility and Outcome.FAILED.informs_visibility
     with pytest.raises(StatusFormatError, match='status'):
         decode_frame({'stamp': '1.0'})
+
+
+def test_noise_parameters_take_the_description_law_unless_set() -> None:
+    from body_schema.noise import ConstantNoise, PoseDependentNoise
+    from body_schema.robot import load_robot
+    from calibration_interfaces.noise import NoiseSettings, PoseDependentSettings
+
+    ur = load_robot('ur5e')
+    assert ur.noise_law, 'the UR5e description carries its fitted law'
+    assert NoiseSettings().build(ur) == PoseDependentNoise.for_robot(ur)          # every pdn_* negative
+    assert NoiseSettings().build() == PoseDependentNoise()                         # no description: built-in
+    law = NoiseSettings().build(ur, PoseDependentSettings(pdn_a_rot=1e-3))
+    assert law.a_rot == 1e-3 and law.a_pos == ur.noise_law['a_pos']                # only what was set
+    assert isinstance(NoiseSettings(noise_model='constant').build(ur), ConstantNoise)
+    spec = {s.name: s for s in parameter_specs(PoseDependentSettings)}['pdn_a_pos']
+    assert spec.default == -1.0 and spec.range[0] == -1.0 and 'description' in spec.description

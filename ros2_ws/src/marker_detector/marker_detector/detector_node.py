@@ -111,7 +111,7 @@ class DetectorNode(Node):
         pdn = declare_settings(self, PoseDependentSettings)
         config = declare_settings(self, DetectorConfig)
         self.model = load_robot(s.robot)
-        self.estimator = HandPoseEstimator(self.model, self.noise.build(pdn), config)
+        self.estimator = HandPoseEstimator(self.model, self.noise.build(self.model, pdn), config)
         self.root_frame = self.model.root_frame
         self.stereo = s.use_right_eye
         self._warn_once = WarnOnce(self)

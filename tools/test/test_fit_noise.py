@@ -1,0 +1,48 @@
+"""The noise-law fitting command: its YAML is a description's block; its calibration figures are right."""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import yaml
+
+from body_schema import load_robot
+from body_schema.noise import PoseDependentNoise
+from body_schema.robot import robot_from_dict, robot_path
+from tools.detector_accuracy import FrameScores, draw_scores
+from tools.fit_noise import calibration_of, law_yaml, main, views_of
+
+
+def _draw(law: PoseDependentNoise, n: int, seed: int) -> FrameScores:
+    return draw_scores(law, n, seed, (0.8, 1.8))
+
+
+def test_the_printed_block_is_a_description_block_that_loads_back() -> None:
+    law = PoseDependentNoise(2.74e-7, 1.23e-8, 1.27e-6, 1.82e-8, 1e-8, 2.74e-7)
+    data = yaml.safe_load(robot_path('ur5e').read_text())
+    data.update(yaml.safe_load(law_yaml(law, 'fitted')))
+    assert PoseDependentNoise.for_robot(robot_from_dict(data)) == law
+
+
+def test_calibration_figures_are_one_for_the_true_law_and_show_a_pessimistic_one() -> None:
+    truth = PoseDependentNoise(3e-7, 1e-8, 1.3e-6, 2e-8, 1e-8, 3e-7)
+    out = _draw(truth, 5000, 0)
+    c = calibration_of(truth, out)
+    assert c['ratio_pos'] == pytest.approx(1.0, abs=0.05) and c['ratio_rot'] == pytest.approx(1.0, abs=0.05)
+    assert c['cover_pos'] == pytest.approx(0.95, abs=0.01) and c['cover_rot'] == pytest.approx(0.95, abs=0.01)
+    wide = dataclasses.replace(truth, a_pos=4 * truth.a_pos, b_pos=4 * truth.b_pos, floor_pos=4 * truth.floor_pos)
+    assert calibration_of(wide, out)['ratio_pos'] == pytest.approx(0.25, abs=0.02)
+
+
+def test_views_are_the_description_cameras_at_their_resolution() -> None:
+    assert views_of(load_robot('ur5e')) == [('left', (1280, 1024))]
+    assert [v[0] for v in views_of(load_robot('icub_right_arm'))] == ['left', 'right']
+    with pytest.raises(ValueError, match="'bare' has no camera"):
+        views_of(dataclasses.replace(load_robot('ur5e'), name='bare', fixed_cameras={}))
+
+
+def test_too_few_configurations_are_refused(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as e:
+        main(['--n', '5'])
+    assert e.value.code == 2 and '--n must be at least 20 for a fit of six coefficients, got 5' in capsys.readouterr().err

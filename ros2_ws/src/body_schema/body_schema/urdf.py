@@ -26,7 +26,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 __all__ = ['Visual', 'FixedLink', 'FrameTransform', 'dh_chain_urdf', 'chain_transforms', 'model_urdf',
-           'transform_to_xyz_rpy', 'xyz_rpy_to_transform']
+           'transform_to_xyz_rpy', 'xyz_rpy_to_transform', 'link_pose']
 
 
 @dataclass(frozen=True)
@@ -325,3 +325,46 @@ def model_urdf(model: 'ArmModel', **kwargs) -> str:  # noqa: F821 (avoid an impo
     kwargs.setdefault('name', model.name)
     kwargs.setdefault('root_link', model.root_frame)
     return dh_chain_urdf(model.dh, model.joint_names, model.limits, base=model.base, **kwargs)
+
+
+def link_pose(urdf: str, link: str, q: Mapping[str, float] | None = None) -> NDArray[np.float64]:
+    """Pose of ``link`` in the URDF's root link, by walking its joints (a check of a written URDF).
+
+    Parameters
+    ----------
+    urdf : str
+        A URDF document as this module writes it (revolute joints about their z axis).
+    link : str
+    q : mapping of joint name to angle [rad], optional
+        Revolute joints not given are at 0.
+
+    Returns
+    -------
+    ndarray, shape (4, 4)
+
+    Raises
+    ------
+    ValueError
+        If a revolute joint's axis is not z, or ``link`` is not in the document.
+    """
+    import xml.etree.ElementTree as ET
+
+    q = dict(q or {})
+    root = ET.fromstring(urdf)
+    parent_of: dict[str, tuple[str, NDArray[np.float64]]] = {}
+    for j in root.findall('joint'):
+        o = j.find('origin')
+        t = xyz_rpy_to_transform([float(v) for v in o.get('xyz').split()], [float(v) for v in o.get('rpy').split()])
+        if j.get('type') == 'revolute':
+            axis = j.find('axis').get('xyz')
+            if [float(v) for v in axis.split()] != [0.0, 0.0, 1.0]:
+                raise ValueError(f'joint {j.get("name")!r}: axis {axis!r}, only "0 0 1" is walked')
+            t = t @ _rz(q.get(j.get('name'), 0.0))
+        parent_of[j.find('child').get('link')] = (j.find('parent').get('link'), t)
+    if link not in parent_of and not any(ln.get('name') == link for ln in root.findall('link')):
+        raise ValueError(f'link {link!r} is not in the URDF')
+    pose = np.eye(4)
+    while link in parent_of:
+        link, t = parent_of[link]
+        pose = t @ pose
+    return pose

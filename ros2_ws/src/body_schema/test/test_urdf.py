@@ -9,31 +9,12 @@ import pytest
 from body_schema import kinematics
 from body_schema.robot import load_robot
 from body_schema.sampling import perturb_dh, uniform_configs
-from body_schema.urdf import (FixedLink, Visual, dh_chain_urdf, model_urdf, transform_to_xyz_rpy,
+from body_schema.urdf import (FixedLink, Visual, dh_chain_urdf, link_pose, model_urdf, transform_to_xyz_rpy,
                               xyz_rpy_to_transform)
 
 
-def _rz(t: float) -> np.ndarray:
-    return xyz_rpy_to_transform([0, 0, 0], [0, 0, t])
-
-
 def urdf_fk(text: str, q: dict[str, float], link: str) -> np.ndarray:
-    """Pose of ``link`` in the root by walking the URDF's joints (revolute about their axis z)."""
-    root = ET.fromstring(text)
-    parent_of = {}
-    for j in root.findall('joint'):
-        o = j.find('origin')
-        t = xyz_rpy_to_transform([float(v) for v in o.get('xyz').split()],
-                                 [float(v) for v in o.get('rpy').split()])
-        if j.get('type') == 'revolute':
-            assert j.find('axis').get('xyz') == '0 0 1'
-            t = t @ _rz(q[j.get('name')])
-        parent_of[j.find('child').get('link')] = (j.find('parent').get('link'), t)
-    pose = np.eye(4)
-    while link in parent_of:
-        link, t = parent_of[link]
-        pose = t @ pose
-    return pose
+    return link_pose(text, link, q)
 
 
 def test_rpy_round_trip_including_gimbal_lock() -> None:

@@ -35,7 +35,7 @@ from body_schema import ekf as ekf_mod
 from body_schema import extrinsics as extrinsics_mod
 from body_schema import identifiability
 from body_schema.map_estimator import LOSSES, MapEstimator, MapSettings
-from body_schema.urdf import model_urdf, transform_to_xyz_rpy
+from body_schema.urdf import FixedLink, model_urdf, transform_to_xyz_rpy
 from calibration_interfaces.contract import optical_frame
 from calibration_interfaces.dh_file import write_dh_file
 from calibration_interfaces.outcome import Outcome
@@ -383,6 +383,26 @@ class OnlineEstimator:
         if poses is not None and 'camera' in self.extrinsics.blocks:
             tf = extrinsics_mod.static_transform(poses[0], self.model.root_frame, optical_frame(CAMERA))
             (directory / f'{stem}_camera_static_transform.yaml').write_text(yaml.safe_dump(tf, sort_keys=False))
-        urdf_path = directory / f'{stem}.urdf'  # the arm only: the camera and marker are in the YAML
-        urdf_path.write_text(model_urdf(self.calibrated_model()))
+        urdf_path = directory / f'{stem}.urdf'
+        urdf_path.write_text(model_urdf(self.calibrated_model(), extra_links=self.frame_links()))
         return yaml_path, urdf_path
+
+    def frame_links(self) -> tuple[FixedLink, ...]:
+        """The fixed cameras' optical frames (on the root link) and the markers' frames (on the
+        hand) for the calibrated URDF: where they are estimated, at the estimate, else at the
+        description's poses. A head's eyes move with its joints and are not in the arm's URDF.
+
+        The marker board's estimated offset ``M`` moves every marker with it:
+        ``hand_T_marker_i = M M_nom^-1 hand_T_marker_i,nom``.
+        """
+        poses = self.extrinsic_poses()
+        cameras = dict(self.model.fixed_cameras)
+        board = np.eye(4)
+        if poses is not None:
+            if 'camera' in self.extrinsics.blocks and CAMERA in cameras:
+                cameras[CAMERA] = poses[0]
+            if 'marker' in self.extrinsics.blocks:
+                board = poses[1] @ np.linalg.inv(self.extrinsics.marker)
+        return tuple([FixedLink(optical_frame(name), self.model.root_frame, pose)
+                      for name, pose in sorted(cameras.items())]
+                     + [FixedLink(f'marker_{m.name}', 'hand', board @ m.hand_T_marker) for m in self.model.markers])

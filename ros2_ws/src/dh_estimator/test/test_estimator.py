@@ -5,6 +5,7 @@ import yaml
 
 import body_schema
 from body_schema import ekf, sampling
+from body_schema.urdf import link_pose
 from calibration_interfaces.outcome import Outcome
 from dh_estimator.estimator import EstimatorSettings, OnlineEstimator
 from dh_estimator.joint_buffer import JointStateBuffer, StampOutOfRange
@@ -212,6 +213,37 @@ def test_export_writes_the_camera_pose_with_sigma_and_a_static_transform(tmp_pat
     tf = yaml.safe_load((tmp_path / 'calibrated_camera_static_transform.yaml').read_text())
     assert tf['frame_id'] == 'base' and tf['child_frame_id'] == 'left_camera_optical_frame'
     assert [tf['x'], tf['y'], tf['z']] == pytest.approx(doc['camera']['xyz'])
+
+
+def test_calibrated_urdf_carries_the_estimated_camera_and_marker_frames(tmp_path):
+    ur, est = _ur_estimator(camera_prior='0.02 2', marker_prior='0.005 5')
+    est.map.x[24:36] = [0.01, -0.02, 0.005, 0.0, 0.0, np.radians(1.0), 0.002, 0.0, -0.003, np.radians(2.0), 0, 0]
+    _, u = est.export(tmp_path)
+    text = u.read_text()
+    cam, marker = est.extrinsic_poses()
+    assert not np.allclose(cam, ur.camera_pose('left'), atol=1e-3)     # the estimate, not the description
+    np.testing.assert_allclose(link_pose(text, 'left_camera_optical_frame'), cam, atol=1e-9)
+    q = sampling.uniform_configs(ur.calibration_box, 1, 3)[0]
+    flange = est.calibrated_model().forward_kinematics(q)
+    np.testing.assert_allclose(link_pose(text, 'marker_flange', dict(zip(ur.joint_names, q))), flange @ marker,
+                               atol=1e-9)
+
+
+def test_calibrated_urdf_without_extrinsics_has_the_description_frames(arm, tmp_path):
+    ur, est = _ur_estimator()
+    _, u = est.export(tmp_path)
+    np.testing.assert_allclose(link_pose(u.read_text(), 'left_camera_optical_frame'), ur.camera_pose('left'),
+                               atol=1e-9)
+    # The iCub's eyes ride its head: not in the arm's URDF; its hand markers are.
+    icub = _estimator(arm)
+    _, u = icub.export(tmp_path)
+    text = u.read_text()
+    assert 'camera_optical_frame' not in text and len(arm.markers) > 1
+    q = sampling.uniform_configs(arm.calibration_box, 1, 4)[0]
+    hand = icub.calibrated_model().forward_kinematics(q)
+    for m in arm.markers:
+        np.testing.assert_allclose(link_pose(text, f'marker_{m.name}', dict(zip(arm.joint_names, q))),
+                                   hand @ m.hand_T_marker, atol=1e-9)
 
 
 @pytest.mark.parametrize('kw, words', [({'camera_prior': '0.02'}, "camera_prior.*'0.02'"),

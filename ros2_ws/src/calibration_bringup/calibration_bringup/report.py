@@ -2,8 +2,9 @@
 
 Re-runs the filter on the bag with :func:`dh_estimator.evaluate.evaluate_bag` (the online
 estimate is scored alongside), then writes ``metrics.csv``, ``error_vs_iteration.png``,
-``error_vs_movement.png`` and ``report.md`` (settings, summary, what is in the bag, how to open
-it) and prints the summary. ``scripts/run_calibration.sh`` calls it after every run. A bag cut
+``error_vs_movement.png``, ``report.md`` (settings, summary, what is in the bag, how to open
+it) and ``summary.json`` (the headline figures, for studies over many runs: :func:`summary_record`)
+and prints the summary. ``scripts/run_calibration.sh`` calls it after every run. A bag cut
 short by a crash is read up to its last complete record; the console and ``report.md`` say how many
 messages were recovered and what was lost. An empty, missing or non-MCAP bag is one line on
 stderr and exit status 1.
@@ -16,6 +17,8 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import json
+import math
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -28,7 +31,7 @@ from body_schema.noise import NOISE_MODELS
 from calibration_interfaces import mcap_reader
 from calibration_interfaces.parameters import read_params_file
 
-__all__ = ['bag_contents', 'render_report', 'estimator_params_file', 'main']
+__all__ = ['bag_contents', 'render_report', 'summary_record', 'estimator_params_file', 'main']
 
 
 def estimator_params_file() -> Path:
@@ -86,6 +89,43 @@ def render_report(ev: Evaluation, bag: Path, title: str, wall_seconds: float | N
     return '\n'.join(lines)
 
 
+def summary_record(ev: Evaluation, title: str, wall_seconds: float | None) -> dict[str, object]:
+    """The run's headline figures as plain JSON values (NaN as None), the same as ``report.md``'s.
+
+    Keys: ``title``, ``wall_seconds``, ``iterations``, ``outcomes`` (count per outcome),
+    ``initial`` / ``final`` / ``online`` (``position_mm``, ``orientation_deg``), ``information_limit``,
+    ``movement_deg``, ``identifiable``, ``parameters``, ``nees_identifiable``, ``nees_band`` (95 %),
+    ``unidentifiable``, ``extrinsics`` (block -> ``error`` and ``sigma``, mm and deg),
+    ``max_online_offline_difference``.
+    """
+    from scipy.stats import chi2
+
+    def num(v: float) -> float | None:
+        return None if v is None or not math.isfinite(v) else float(v)
+
+    first, last = ev.rows[0], ev.rows[-1]
+    outcomes: dict[str, int] = {}
+    for r in ev.rows[1:]:
+        outcomes[r.outcome] = outcomes.get(r.outcome, 0) + 1
+    return {
+        'title': title, 'wall_seconds': num(wall_seconds) if wall_seconds else None,
+        'iterations': last.iteration, 'outcomes': outcomes,
+        'initial': {'position_mm': num(first.position_mm), 'orientation_deg': num(first.orientation_deg)},
+        'final': {'position_mm': num(last.position_mm), 'orientation_deg': num(last.orientation_deg)},
+        'online': {'position_mm': num(last.online_position_mm), 'orientation_deg': num(last.online_orientation_deg)},
+        'information_limit': {'position_mm': num(last.expected_position_mm),
+                              'orientation_deg': num(last.expected_orientation_deg)},
+        'movement_deg': num(last.movement_deg),
+        'identifiable': ev.identifiable, 'parameters': ev.parameters or int(ev.final_dh.size),
+        'nees_identifiable': num(ev.nees_identifiable),
+        'nees_band': [float(b) for b in chi2.ppf([0.025, 0.975], ev.identifiable)] if ev.identifiable else None,
+        'unidentifiable': list(ev.unidentifiable),
+        'extrinsics': {k: {'error': [num(v) for v in e], 'sigma': [num(v) for v in sg]}
+                       for k, (e, sg) in ev.extrinsics.items()},
+        'max_online_offline_difference': num(ev.max_online_offline_difference),
+    }
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Console entry point ``calibration_report``; returns the exit status."""
     ap = argparse.ArgumentParser(prog='calibration_report', description=__doc__.split('\n\n')[0])
@@ -125,6 +165,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f'calibration_report: {exc}', file=sys.stderr)
         return 1
     (out / 'report.md').write_text(text)
+    record = summary_record(ev, args.title or args.bag.stem, args.wall_seconds)
+    (out / 'summary.json').write_text(json.dumps(record, indent=1) + '\n')
     print(summary_text(ev))
     print(f'report: {out / "report.md"}')
     return 0

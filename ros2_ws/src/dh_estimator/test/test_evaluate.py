@@ -254,6 +254,15 @@ def test_a_truncated_bag_is_evaluated_up_to_its_last_complete_chunk_and_says_so(
 
     assert report_main(['--bag', str(bag), '--output', str(tmp_path / 'report')]) == 0
     assert f'**{ev.bag.loss}.**' in (tmp_path / 'report' / 'report.md').read_text()
+    # The same figures, machine-readable for studies over many runs.
+    import json
+
+    rec = json.loads((tmp_path / 'report' / 'summary.json').read_text())
+    assert rec['iterations'] == ev.rows[-1].iteration and sum(rec['outcomes'].values()) == rec['iterations']
+    assert rec['final']['position_mm'] == pytest.approx(ev.rows[-1].position_mm)
+    assert rec['initial']['orientation_deg'] == pytest.approx(ev.rows[0].orientation_deg)
+    assert rec['identifiable'] == ev.identifiable and rec['nees_band'][0] < rec['nees_band'][1]
+    assert rec['nees_identifiable'] == pytest.approx(ev.nees_identifiable)
 
 
 @pytest.mark.parametrize('content, says', [(b'', 'is empty'), (b'PK\x03\x04 a zip file', 'is not an MCAP file')])

@@ -1,0 +1,171 @@
+"""Run the whole graph (``scripts/run_calibration.sh``) over many seeds and summarise the runs.
+
+Each seed is one complete run in its own directory (``OUTPUT/seed_<S>``: bag, report,
+``summary.json``), launched as a user would, on a free ROS domain the launcher picks; ``--jobs``
+runs go at once. A seed whose ``summary.json`` exists is not run again (``--force`` re-runs it),
+so an interrupted study continues where it stopped. The summary (``OUTPUT/summary.md``, also
+printed) has one row per seed and the mean, median and range of the final flange error, the NEES
+on the identifiable parameter combinations against its 95 % chi-square band and, where the camera
+or marker pose is estimated, how many of their components lie within one and two sigma.
+
+Usage (from the repository root; arguments after ``--`` go to every run)::
+
+    python -m tools.seed_study --robot ur5e --strategy al --iterations 50 --seeds 1-10 --jobs 2 \\
+        --output results/ur5e-study -- --camera-error "0.02 2" --marker-error "0.005 5" --no-images
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+__all__ = ['parse_seeds', 'summarise', 'main']
+
+ROOT = Path(__file__).resolve().parents[1]
+LAUNCHER = ROOT / 'scripts' / 'run_calibration.sh'
+
+
+def parse_seeds(text: str) -> list[int]:
+    """``"1-10"``, ``"1,3,7"`` or a mix (``"1-3,9"``) -> sorted distinct seeds.
+
+    Raises
+    ------
+    ValueError
+        If a part is not an integer or a range ``lo-hi`` with ``lo <= hi``; the message names it.
+    """
+    seeds: set[int] = set()
+    for part in filter(None, (p.strip() for p in text.split(','))):
+        lo, sep, hi = part.partition('-')
+        try:
+            a, b = (int(lo), int(hi)) if sep else (int(part), int(part))
+        except ValueError:
+            raise ValueError(f'--seeds: {part!r} is neither a seed nor a range lo-hi') from None
+        if a > b or a < 0:
+            raise ValueError(f'--seeds: range {part!r} is empty or negative')
+        seeds.update(range(a, b + 1))
+    if not seeds:
+        raise ValueError(f'--seeds: no seed in {text!r}')
+    return sorted(seeds)
+
+
+def _run(seed: int, out: Path, common: list[str], extra: list[str]) -> tuple[int, int, float]:
+    """One launcher run; (seed, exit status, wall seconds). Its console goes to ``seed_<S>.log``."""
+    d = out / f'seed_{seed}'
+    t0 = time.monotonic()
+    with open(out / f'seed_{seed}.log', 'w') as log:
+        rc = subprocess.call([str(LAUNCHER), *common, '--seed', str(seed), '--output', str(d), '--overwrite',
+                              *extra], stdout=log, stderr=subprocess.STDOUT, cwd=ROOT)
+    return seed, rc, time.monotonic() - t0
+
+
+def _spread(values: Sequence[float], fmt: str) -> str:
+    v = np.asarray([x for x in values if x is not None], dtype=float)
+    if not v.size:
+        return 'n/a'
+    return (f'mean {v.mean():{fmt}}, median {np.median(v):{fmt}}, min {v.min():{fmt}}, max {v.max():{fmt}}'
+            + (f', std {v.std(ddof=1):{fmt}}' if v.size > 1 else ''))
+
+
+def _within(block: dict[str, Any], k: float) -> tuple[int, int]:
+    """Components of an extrinsic block whose |error| <= k sigma, and how many had a truth."""
+    pairs = [(e, s) for e, s in zip(block['error'], block['sigma']) if e is not None and s is not None]
+    return sum(abs(e) <= k * s for e, s in pairs), len(pairs)
+
+
+def summarise(records: dict[int, dict[str, Any]], status: dict[int, int], command: str) -> str:
+    """The Markdown summary of ``records`` (seed -> ``summary.json``) and exit ``status`` (seed -> rc)."""
+    seeds = sorted(records)
+    blocks = sorted({b for r in records.values() for b in r.get('extrinsics', {})})
+    head = ['seed', 'exit', 'accepted / iterations', 'initial [mm / deg]', 'final [mm / deg]',
+            'information limit [mm / deg]', 'NEES (95% band)'] + [f'{b} within 1 / 2 sigma' for b in blocks]
+    lines = [f'Command: `{command}`', '', '| ' + ' | '.join(head) + ' |', '|' + '---|' * len(head)]
+    for s in seeds:
+        r = records[s]
+        band = r.get('nees_band') or [float('nan')] * 2
+        nees = r.get('nees_identifiable')
+        nees_text = 'n/a' if nees is None else (f'{nees:.1f}' + ('' if band[0] <= nees <= band[1] else ' (out)'))
+        cells = [str(s), str(status.get(s, '-')), f"{r['outcomes'].get('accepted', 0)} / {r['iterations']}",
+                 f"{r['initial']['position_mm']:.1f} / {r['initial']['orientation_deg']:.2f}",
+                 f"**{r['final']['position_mm']:.2f} / {r['final']['orientation_deg']:.3f}**",
+                 f"{r['information_limit']['position_mm']:.2f} / {r['information_limit']['orientation_deg']:.3f}",
+                 f'{nees_text} ({band[0]:.1f}-{band[1]:.1f})']
+        for b in blocks:
+            blk = r.get('extrinsics', {}).get(b)
+            cells.append('n/a' if blk is None else '{0} / {2} of {1}'.format(*_within(blk, 1), _within(blk, 2)[0]))
+        lines.append('| ' + ' | '.join(cells) + ' |')
+    rec = [records[s] for s in seeds]
+    nees = [r.get('nees_identifiable') for r in rec]
+    inside = sum(1 for r, v in zip(rec, nees) if v is not None and r['nees_band'][0] <= v <= r['nees_band'][1])
+    lines += ['', f'Over {len(seeds)} seeds:', '',
+              f"- final position error [mm]: {_spread([r['final']['position_mm'] for r in rec], '.2f')}",
+              f"- final orientation error [deg]: {_spread([r['final']['orientation_deg'] for r in rec], '.3f')}",
+              f'- NEES on the identifiable combinations: {_spread(nees, ".1f")}; inside the 95% band in '
+              f'{inside} of {sum(v is not None for v in nees)} runs',
+              f"- accepted observations: {_spread([r['outcomes'].get('accepted', 0) for r in rec], '.1f')}",
+              f"- wall time per run [s]: {_spread([r['wall_seconds'] for r in rec], '.0f')}"]
+    for b in blocks:
+        k1 = [_within(r['extrinsics'][b], 1) for r in rec if b in r.get('extrinsics', {})]
+        k2 = [_within(r['extrinsics'][b], 2) for r in rec if b in r.get('extrinsics', {})]
+        lines.append(f'- {b} pose components within one sigma: {sum(a for a, _ in k1)} of {sum(n for _, n in k1)} '
+                     f'(a consistent estimate: about 68%); within two: {sum(a for a, _ in k2)} (about 95%)')
+    failed = sorted(s for s, rc in status.items() if rc != 0)
+    if failed:
+        lines.append(f'- runs that exited non-zero (see `seed_<S>.log`; 1 is the launcher\'s UNHEALTHY RUN): '
+                     f'{failed}')
+    return '\n'.join(lines) + '\n'
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    extra = argv[argv.index('--') + 1:] if '--' in argv else []
+    own = argv[:argv.index('--')] if '--' in argv else argv
+    ap = argparse.ArgumentParser(prog='python -m tools.seed_study', description=__doc__.split('\n\n')[0])
+    ap.add_argument('--robot', default='icub_right_arm')
+    ap.add_argument('--strategy', default='al')
+    ap.add_argument('--iterations', type=int, default=50)
+    ap.add_argument('--seeds', default='1-10', help='e.g. 1-10 or 1,3,7')
+    ap.add_argument('--jobs', type=int, default=2, help='runs at once (each renders and solves: about one core)')
+    ap.add_argument('--output', type=Path, required=True)
+    ap.add_argument('--force', action='store_true', help='re-run seeds that already have a summary.json')
+    args = ap.parse_args(own)
+    try:
+        seeds = parse_seeds(args.seeds)
+    except ValueError as exc:
+        ap.error(str(exc))
+    if args.jobs < 1:
+        ap.error(f'--jobs must be at least 1, got {args.jobs}')
+    out = args.output.resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    common = ['--robot', args.robot, '--strategy', args.strategy, '--iterations', str(args.iterations)]
+    todo = [s for s in seeds if args.force or not (out / f'seed_{s}' / 'summary.json').exists()]
+    status: dict[int, int] = {}
+    if (out / 'status.json').exists():
+        status = {int(k): v for k, v in json.loads((out / 'status.json').read_text()).items()}
+    print(f'seed_study: {len(todo)} of {len(seeds)} seeds to run, {args.jobs} at a time -> {out}', flush=True)
+    with ThreadPoolExecutor(args.jobs) as pool:
+        for seed, rc, wall in pool.map(lambda s: _run(s, out, common, extra), todo):
+            status[seed] = rc
+            (out / 'status.json').write_text(json.dumps(status, indent=1))
+            print(f'  seed {seed}: exit {rc} in {wall:.0f} s', flush=True)
+    records = {s: json.loads((out / f'seed_{s}' / 'summary.json').read_text())
+               for s in seeds if (out / f'seed_{s}' / 'summary.json').exists()}
+    missing = [s for s in seeds if s not in records]
+    command = 'python -m tools.seed_study ' + shlex.join([*own] + (['--', *extra] if extra else []))
+    text = summarise(records, status, command) if records else 'no run produced a summary.json\n'
+    if missing:
+        text += f'\nNo summary.json (the run failed before its report; see its log): seeds {missing}\n'
+    (out / 'summary.md').write_text(text)
+    print(text)
+    return 0 if not missing and all(status.get(s, 0) == 0 for s in seeds) else 1
+
+
+if __name__ == '__main__':
+    sys.exit(main())

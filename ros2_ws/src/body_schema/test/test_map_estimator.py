@@ -179,3 +179,60 @@ def test_innovation_is_what_the_update_reports_and_changes_nothing(arm):
     np.testing.assert_allclose(u.innovation, y)
     np.testing.assert_allclose(u.S, S)
     assert u.nis == pytest.approx(float(y @ np.linalg.solve(S, y)))
+
+
+# --------------------------------------------------------------------------------------------
+# The robust estimate's own covariance (Huber's sandwich)
+
+def _robust_fits(noise, trials: int = 300, n: int = 150, seed: int = 0):
+    """Robust (Cauchy, scale 3) fits of a linear model with unit stated noise: the estimates' errors
+    and the sandwich and Gauss-Newton covariances each fit reported."""
+    from scipy.optimize import least_squares
+
+    from body_schema.map_estimator import sandwich_covariance
+
+    rng = np.random.default_rng(seed)
+    X = rng.normal(size=(n, 4))  # noqa: N806
+    beta = np.array([1.0, -2.0, 0.5, 3.0])
+    jp = 1e-3 * np.eye(4)                       # a weak Gaussian prior at 0
+    errors, sandwiches = [], []
+    for _ in range(trials):
+        y = X @ beta + noise(rng, n)
+
+        def fun(b):
+            return np.concatenate([jp @ b, y - X @ b])
+        res = least_squares(fun, np.zeros(4), loss='cauchy', f_scale=3.0)
+        errors.append(res.x - beta)
+        sandwiches.append(sandwich_covariance(jp, -X, res.fun[4:], 'cauchy', 3.0))
+    gauss_newton = np.linalg.inv(jp.T @ jp + X.T @ X)
+    return np.array(errors), np.array(sandwiches), gauss_newton
+
+
+def test_sandwich_is_gauss_newton_for_gaussian_noise_of_the_stated_scale():
+    errors, sandwiches, gn = _robust_fits(lambda rng, n: rng.normal(size=n))
+    ratio = np.trace(sandwiches.mean(axis=0)) / np.trace(gn)
+    assert 1.0 < ratio < 1.12                          # Cauchy at 3 sigma: a few per cent of efficiency
+    nees = np.einsum('ti,tij,tj->t', errors, np.linalg.inv(sandwiches), errors)
+    assert np.mean(nees) == pytest.approx(4.0, rel=0.15)
+
+
+def test_sandwich_is_consistent_where_a_variance_matched_gaussian_law_is_not():
+    # Heavy tails (Student t, 1.3 dof: as the simulated ArUco detector's errors at 1.7 m), stated
+    # noise 1: most residuals are far below 1, so the robust fit is far better than (X^T X)^-1 says.
+    errors, sandwiches, gn = _robust_fits(lambda rng, n: 0.1 * rng.standard_t(1.3, size=n))
+    nees_gn = np.einsum('ti,ij,tj->t', errors, np.linalg.inv(gn), errors)
+    nees = np.einsum('ti,tij,tj->t', errors, np.linalg.inv(sandwiches), errors)
+    assert np.mean(nees_gn) < 0.5                      # pessimistic: the expected value is 4
+    assert np.mean(nees) == pytest.approx(4.0, rel=0.2)
+
+
+def test_sandwich_declines_without_enough_residuals():
+    from body_schema.map_estimator import sandwich_covariance
+
+    rng = np.random.default_rng(1)
+    jo = rng.normal(size=(12, 6))
+    assert sandwich_covariance(np.eye(6) * 1e-3, jo, rng.normal(size=12), 'cauchy', 3.0) is None   # 6 dof left
+    far = 100 * (1 + rng.random(12))                   # every residual beyond the loss scale: no spread to measure
+    assert sandwich_covariance(np.eye(6) * 1e-3, jo, far, 'cauchy', 3.0, min_dof=1) is None
+    with pytest.raises(ValueError, match="covariance must be one of .*'sandwich'.*got 'robust'"):
+        MapSettings(covariance='robust')

@@ -34,7 +34,7 @@ from body_schema import ArmModel
 from body_schema import ekf as ekf_mod
 from body_schema import extrinsics as extrinsics_mod
 from body_schema import identifiability
-from body_schema.map_estimator import LOSSES, MapEstimator, MapSettings
+from body_schema.map_estimator import COVARIANCES, LOSSES, MapEstimator, MapSettings
 from body_schema.urdf import FixedLink, model_urdf, transform_to_xyz_rpy
 from calibration_interfaces.contract import optical_frame
 from calibration_interfaces.dh_file import write_dh_file
@@ -109,6 +109,10 @@ class EstimatorSettings:
     jump_angle: float = setting(_MAP.jump_angle, 'MAP: standard deviation of a detected change for alpha, '
                                 'offset [rad]', (1e-6, 3.2))
     max_nfev: int = setting(_MAP.max_nfev, 'MAP: residual evaluations per re-solve', (1, 10000))
+    covariance: str = setting(_MAP.covariance, "MAP: posterior covariance, 'sandwich' (the robust estimate's own, "
+                              "with the residuals' spread measured at the solution: consistent when the noise "
+                              "law is right only up to its scale or tails) or 'gauss_newton' (the stated noise "
+                              "taken as exact)", choices=COVARIANCES)
     camera_prior: str = setting('', 'MAP: estimate the camera pose with the table, prior one-sigma per axis '
                                 '"<m> <deg>" (e.g. "0.02 2" for a tape-measured tripod); empty or 0: known')
     marker_prior: str = setting('', 'MAP: estimate the marker offset on the flange, prior one-sigma per axis '
@@ -128,7 +132,7 @@ class EstimatorSettings:
                            change_probability=self.change_probability, change_window=self.change_window,
                            change_count=self.change_count, warmup=self.warmup,
                            jump_length=self.jump_length,
-                           jump_angle=self.jump_angle)
+                           jump_angle=self.jump_angle, covariance=self.covariance)
 
     def __post_init__(self) -> None:
         if self.estimator not in ESTIMATORS:

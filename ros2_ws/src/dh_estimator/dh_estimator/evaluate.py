@@ -46,7 +46,7 @@ from scipy.stats import chi2
 from body_schema import load_robot, sampling
 from body_schema.extrinsics import absorbed_parameters, align_truth, perturb_pose, pose_delta
 from body_schema.identifiability import subspace_nees
-from body_schema.map_estimator import LOSSES
+from body_schema.map_estimator import COVARIANCES, LOSSES
 from body_schema.metrics import PoseErrorEvaluator, expected_pose_errors
 from body_schema.noise import NOISE_MODELS
 from calibration_interfaces import mcap_reader
@@ -435,6 +435,8 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument('--cn-sigma-rot-deg', type=float, help='[deg]')
     ap.add_argument('--estimator', choices=list(ESTIMATORS), help="'map' (online MAP) or 'ekf' (the paper's)")
     ap.add_argument('--loss', choices=list(LOSSES), help='MAP robust loss')
+    ap.add_argument('--covariance', choices=list(COVARIANCES),
+                    help="MAP posterior covariance: 'sandwich' (robust) or 'gauss_newton'")
     ap.add_argument('--change-probability', type=float, help='MAP change detection (0: off)')
     ap.add_argument('--iterations', type=int, help='EKF linearisations per update')
     ap.add_argument('--gate-probability', type=float)
@@ -446,7 +448,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 _OVERRIDES = ('robot', 'initial_seed', 'noise_model', 'cn_sigma_pos', 'cn_sigma_rot_deg', 'estimator', 'loss',
-              'change_probability', 'iterations', 'gate_probability', 'gate_warmup', 'camera_prior', 'marker_prior')
+              'covariance', 'change_probability', 'iterations', 'gate_probability', 'gate_warmup', 'camera_prior', 'marker_prior')
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -11,7 +11,7 @@ from body_schema import load_robot
 from body_schema.noise import PoseDependentNoise
 from body_schema.robot import robot_from_dict, robot_path
 from tools.detector_accuracy import FrameScores, draw_scores
-from tools.fit_noise import calibration_of, law_yaml, main, views_of
+from tools.fit_noise import calibration_of, law_yaml, main, tails, views_of
 
 
 def _draw(law: PoseDependentNoise, n: int, seed: int) -> FrameScores:
@@ -46,3 +46,15 @@ def test_too_few_configurations_are_refused(capsys: pytest.CaptureFixture[str]) 
     with pytest.raises(SystemExit) as e:
         main(['--n', '5'])
     assert e.value.code == 2 and '--n must be at least 20 for a fit of six coefficients, got 5' in capsys.readouterr().err
+
+
+def test_tails_tell_gaussian_errors_from_heavy_tailed_ones() -> None:
+    law = PoseDependentNoise(3e-7, 1e-8, 1.3e-6, 2e-8, 1e-8, 3e-7)
+    gauss = tails(law, _draw(law, 4000, 0))
+    assert gauss['dof'] > 30 and gauss['scale'] == pytest.approx(1.0, abs=0.1) and gauss['beyond_9999'] < 0.002
+    heavy = _draw(law, 4000, 1)
+    rng = np.random.default_rng(2)
+    w = rng.chisquare(1.3, heavy.r.size) / 1.3               # a Student t (1.3 dof) as a Gaussian scale mixture
+    heavy = dataclasses.replace(heavy, pos_err=heavy.pos_err / np.sqrt(w), rot_err=heavy.rot_err / np.sqrt(w))
+    t = tails(law, heavy)
+    assert t['dof'] == pytest.approx(1.3, rel=0.2) and t['beyond_9999'] > 0.05

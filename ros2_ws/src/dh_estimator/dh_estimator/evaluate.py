@@ -58,7 +58,7 @@ from .estimator import ESTIMATORS, EstimatorSettings, OnlineEstimator
 from .node_settings import settings_from_parameters
 from .pairing import MessageError, MessageFeeder, ObservationPairer, PairingSettings
 
-__all__ = ['BagFormatError', 'EvaluationSettings', 'IterationRow', 'Evaluation', 'evaluate_bag',
+__all__ = ['BagFormatError', 'EvaluationSettings', 'IterationRow', 'Evaluation', 'evaluate_bag', 'true_state',
            'write_csv', 'plot_rows', 'main']
 
 #: Topics the evaluation reads (images are never decoded).
@@ -285,7 +285,7 @@ def evaluate_bag(path: str | Path, settings: EvaluationSettings = EvaluationSett
                                  n_updates, float(record.get('selection_s', 0.0)),
                                  float(record.get('sim_time', 0.0)), *limit(dh, P)))
     ident = estimator.identifiability
-    true_x, extrinsic_errors = _true_state(estimator, true_dh, true_extrinsics)
+    true_x, extrinsic_errors = true_state(estimator, true_dh, true_extrinsics)
     nees = (subspace_nees(estimator.x - true_x, estimator.P, ident.identifiable_basis)
             if true_x is not None else float('nan'))
     return Evaluation(rows, estimator.dh.copy(), x0 if online is None else online, true_dh,
@@ -294,7 +294,7 @@ def evaluate_bag(path: str | Path, settings: EvaluationSettings = EvaluationSett
                       len(ident.names), extrinsic_errors)
 
 
-def _true_state(estimator: OnlineEstimator, true_dh: NDArray[np.float64],
+def true_state(estimator: OnlineEstimator, true_dh: NDArray[np.float64],
                 true_extrinsics: tuple[NDArray[np.float64], NDArray[np.float64]] | None
                 ) -> tuple[NDArray[np.float64] | None, dict[str, tuple[tuple[float, ...], tuple[float, ...]]]]:
     """The truth as the estimator's state (None if unknown) and each extrinsic block's error and sigma.

@@ -41,7 +41,7 @@ occlusion_a0, occlusion_b0, occlusion_prior ('flat' | 'geometric'), occlusion_mo
 iterations, settle_tolerance (rad), settle_timeout (s, sim), settle_time (s, sim),
 outcome_timeout (s, sim) (LoopSettings); noise_model ('pose_dependent' | 'constant'),
 cn_sigma_pos, cn_sigma_rot_deg, pdn_a_pos, pdn_b_pos, pdn_a_rot, pdn_b_rot (NoiseSettings,
-PoseDependentSettings).
+PoseDependentSettings; the pdn_* negative by default: the robot description's fitted law).
 """
 from __future__ import annotations
 

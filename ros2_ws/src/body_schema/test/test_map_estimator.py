@@ -148,7 +148,7 @@ def test_state_dict_round_trip_continues_identically(arm):
 @pytest.mark.parametrize('kw, words', [({'loss': 'l2'}, 'loss'), ({'window': 1}, 'window'),
                                        ({'q_length': -1.0}, 'q_length'),
                                        ({'change_probability': 1.0}, 'change_probability'),
-                                       ({'change_count': 4}, 'change_count')])
+                                       ({'change_count': 5}, 'change_count')])
 def test_settings_name_the_bad_value(kw, words):
     with pytest.raises(ValueError, match=words):
         MapSettings(**kw)

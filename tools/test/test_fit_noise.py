@@ -45,7 +45,8 @@ def test_views_are_the_description_cameras_at_their_resolution() -> None:
 def test_too_few_configurations_are_refused(capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit) as e:
         main(['--n', '5'])
-    assert e.value.code == 2 and '--n must be at least 20 for a fit of six coefficients, got 5' in capsys.readouterr().err
+    assert e.value.code == 2
+    assert '--n must be at least 20 for a fit of six coefficients, got 5' in capsys.readouterr().err
 
 
 def test_tails_tell_gaussian_errors_from_heavy_tailed_ones() -> None:

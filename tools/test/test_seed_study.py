@@ -12,7 +12,8 @@ from tools.seed_study import parse_seeds, summarise
 
 
 def _record(final_mm: float, nees: float, cam_err: list[float], accepted: int = 48) -> dict:
-    return {'title': 't', 'wall_seconds': 300.0, 'iterations': 50, 'outcomes': {'accepted': accepted, 'no_marker': 50 - accepted},
+    return {'title': 't', 'wall_seconds': 300.0, 'iterations': 50,
+            'outcomes': {'accepted': accepted, 'no_marker': 50 - accepted},
             'initial': {'position_mm': 200.0, 'orientation_deg': 20.0},
             'final': {'position_mm': final_mm, 'orientation_deg': 0.1},
             'online': {'position_mm': final_mm, 'orientation_deg': 0.1},

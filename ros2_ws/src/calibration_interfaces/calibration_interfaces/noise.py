@@ -32,7 +32,8 @@ class PoseDependentSettings:
     need no parameter; a value set here overrides that coefficient alone.
     """
 
-    pdn_a_pos: float = setting(-1.0, 'Pose-dependent position variance per r^2 [m^2/m^2]' + _FROM_DESCRIPTION, (-1.0, 1.0))
+    pdn_a_pos: float = setting(-1.0, 'Pose-dependent position variance per r^2 [m^2/m^2]' + _FROM_DESCRIPTION,
+                               (-1.0, 1.0))
     pdn_b_pos: float = setting(-1.0, 'Pose-dependent position variance per (phi-45)^2 [m^2/deg^2]'
                                + _FROM_DESCRIPTION, (-1.0, 1.0))
     pdn_a_rot: float = setting(-1.0, 'Pose-dependent orientation variance per r^2 [rad^2/m^2]' + _FROM_DESCRIPTION,

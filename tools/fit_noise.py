@@ -30,7 +30,7 @@ from typing import Sequence
 import numpy as np
 
 from body_schema.noise import ConstantNoise, NoiseModel, PoseDependentNoise
-from body_schema.robot import ArmModel, load_robot
+from body_schema.robot import NOISE_LAW_KEYS, ArmModel, load_robot
 from body_schema.sampling import uniform_configs
 
 from marker_detector.detection import DetectorConfig, HandPoseEstimator
@@ -54,9 +54,15 @@ def views_of(model: ArmModel) -> list[tuple[str, tuple[int, int]]]:
 
 def law_yaml(law: PoseDependentNoise, comment: str) -> str:
     """The ``noise_model:`` block of a robot description for ``law`` (3 significant digits)."""
-    keys = ('a_pos', 'b_pos', 'floor_pos', 'a_rot', 'b_rot', 'floor_rot')
-    body = ', '.join(f'{k}: {getattr(law, k):.3g}' for k in keys)
+    body = ', '.join(f'{k}: {getattr(law, k):.3g}' for k in NOISE_LAW_KEYS)
     return f'# {comment}\nnoise_model: {{{body}}}\n'
+
+
+def _normalised(model: NoiseModel, out: FrameScores) -> tuple[np.ndarray, np.ndarray]:
+    """Squared position and orientation errors over ``model``'s variances, flips excluded."""
+    ok = out.success & np.isfinite(out.r) & (np.degrees(out.rot_err) <= FLIP_DEG)
+    vp, vo = (np.broadcast_to(v, out.r[ok].shape) for v in model.variances(out.r[ok], out.phi[ok]))
+    return out.pos_err[ok] ** 2 / vp, out.rot_err[ok] ** 2 / vo
 
 
 def calibration_of(model: NoiseModel, out: FrameScores) -> dict[str, float]:
@@ -66,9 +72,7 @@ def calibration_of(model: NoiseModel, out: FrameScores) -> dict[str, float]:
     calibrated law, below 1 for a pessimistic one) and the fraction inside the 95 % chi-square(3)
     ellipsoid (0.95 for a calibrated law).
     """
-    ok = out.success & np.isfinite(out.r) & (np.degrees(out.rot_err) <= FLIP_DEG)
-    vp, vo = (np.broadcast_to(v, out.r[ok].shape) for v in model.variances(out.r[ok], out.phi[ok]))
-    zp, zo = out.pos_err[ok] ** 2 / vp, out.rot_err[ok] ** 2 / vo
+    zp, zo = _normalised(model, out)
     return {'ratio_pos': float(np.mean(zp) / 3), 'ratio_rot': float(np.mean(zo) / 3),
             'cover_pos': float(np.mean(zp <= CHI2_3_95)), 'cover_rot': float(np.mean(zo <= CHI2_3_95))}
 
@@ -86,9 +90,8 @@ def tails(model: NoiseModel, out: FrameScores) -> dict[str, float]:
     from scipy.special import gammaln
     from scipy.stats import chi2
 
-    ok = out.success & np.isfinite(out.r) & (np.degrees(out.rot_err) <= FLIP_DEG)
-    vp, vo = (np.broadcast_to(v, out.r[ok].shape) for v in model.variances(out.r[ok], out.phi[ok]))
-    d2 = out.pos_err[ok] ** 2 / vp + out.rot_err[ok] ** 2 / vo
+    zp, zo = _normalised(model, out)
+    d2 = zp + zo
 
     def nll(theta: np.ndarray) -> float:
         s, nu = np.exp(theta)

@@ -49,9 +49,7 @@ def bag_contents(path: str | Path) -> list[tuple[str, str, int]]:
 def render_report(ev: Evaluation, bag: Path, title: str, wall_seconds: float | None) -> str:
     """The Markdown report of one run."""
     last = ev.rows[-1]
-    outcomes: dict[str, int] = {}
-    for r in ev.rows[1:]:
-        outcomes[r.outcome] = outcomes.get(r.outcome, 0) + 1
+    outcomes = ev.outcome_counts
     lines = [f'# Calibration run: {title}', '',
              f'Bag: `{bag.name}`' + (f'; wall time {wall_seconds:.0f} s '
                                      f'({wall_seconds / max(last.iteration, 1):.2f} s per iteration)'
@@ -98,18 +96,13 @@ def summary_record(ev: Evaluation, title: str, wall_seconds: float | None) -> di
     ``unidentifiable``, ``extrinsics`` (block -> ``error`` and ``sigma``, mm and deg),
     ``max_online_offline_difference``.
     """
-    from scipy.stats import chi2
-
     def num(v: float) -> float | None:
         return None if v is None or not math.isfinite(v) else float(v)
 
     first, last = ev.rows[0], ev.rows[-1]
-    outcomes: dict[str, int] = {}
-    for r in ev.rows[1:]:
-        outcomes[r.outcome] = outcomes.get(r.outcome, 0) + 1
     return {
         'title': title, 'wall_seconds': num(wall_seconds) if wall_seconds else None,
-        'iterations': last.iteration, 'outcomes': outcomes,
+        'iterations': last.iteration, 'outcomes': ev.outcome_counts,
         'initial': {'position_mm': num(first.position_mm), 'orientation_deg': num(first.orientation_deg)},
         'final': {'position_mm': num(last.position_mm), 'orientation_deg': num(last.orientation_deg)},
         'online': {'position_mm': num(last.online_position_mm), 'orientation_deg': num(last.online_orientation_deg)},
@@ -118,7 +111,7 @@ def summary_record(ev: Evaluation, title: str, wall_seconds: float | None) -> di
         'movement_deg': num(last.movement_deg),
         'identifiable': ev.identifiable, 'parameters': ev.parameters or int(ev.final_dh.size),
         'nees_identifiable': num(ev.nees_identifiable),
-        'nees_band': [float(b) for b in chi2.ppf([0.025, 0.975], ev.identifiable)] if ev.identifiable else None,
+        'nees_band': None if ev.nees_band is None else list(ev.nees_band),
         'unidentifiable': list(ev.unidentifiable),
         'extrinsics': {k: {'error': [num(v) for v in e], 'sigma': [num(v) for v in sg]}
                        for k, (e, sg) in ev.extrinsics.items()},

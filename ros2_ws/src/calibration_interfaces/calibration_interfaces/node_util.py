@@ -31,8 +31,8 @@ from .contract import RUN_ID_TOPIC, Durability, QosSpec, Reliability, RunSetting
 from .parameters import ParameterSpec, parameter_specs, settings_from_parameters
 from .throttle import KeyedThrottle
 
-__all__ = ['qos_profile', 'descriptor', 'declare_settings', 'WarnOnce', 'WarnThrottled', 'message_class', 'RunGuard', 'spin_node',
-           'RUN_CONFLICT_STATUS']
+__all__ = ['qos_profile', 'descriptor', 'declare_settings', 'WarnOnce', 'WarnThrottled', 'message_class', 'RunGuard',
+           'spin_node', 'RUN_CONFLICT_STATUS']
 
 #: Exit status of a node stopped by :class:`RunGuard`.
 RUN_CONFLICT_STATUS = 3

@@ -148,6 +148,22 @@ class Evaluation:
     extrinsics: dict[str, tuple[tuple[float, ...], tuple[float, ...]]] = field(default_factory=dict)
 
     @property
+    def outcome_counts(self) -> dict[str, int]:
+        """How many iterations ended with each outcome (the initial row aside)."""
+        counts: dict[str, int] = {}
+        for r in self.rows[1:]:
+            counts[r.outcome] = counts.get(r.outcome, 0) + 1
+        return counts
+
+    @property
+    def nees_band(self) -> tuple[float, float] | None:
+        """The 95 % chi-square band of :attr:`nees_identifiable` (None for an old evaluation)."""
+        if not self.identifiable:
+            return None
+        lo, hi = chi2.ppf([0.025, 0.975], self.identifiable)
+        return float(lo), float(hi)
+
+    @property
     def max_online_offline_difference(self) -> float:
         """Largest absolute difference between the final offline and online tables."""
         return float(np.max(np.abs(self.final_dh - self.online_final_dh)))
@@ -295,8 +311,8 @@ def evaluate_bag(path: str | Path, settings: EvaluationSettings = EvaluationSett
 
 
 def true_state(estimator: OnlineEstimator, true_dh: NDArray[np.float64],
-                true_extrinsics: tuple[NDArray[np.float64], NDArray[np.float64]] | None
-                ) -> tuple[NDArray[np.float64] | None, dict[str, tuple[tuple[float, ...], tuple[float, ...]]]]:
+               true_extrinsics: tuple[NDArray[np.float64], NDArray[np.float64]] | None
+               ) -> tuple[NDArray[np.float64] | None, dict[str, tuple[tuple[float, ...], tuple[float, ...]]]]:
     """The truth as the estimator's state (None if unknown) and each extrinsic block's error and sigma.
 
     With extrinsics, the truth is taken in the estimate's gauge (:func:`body_schema.extrinsics.align_truth`):
@@ -402,7 +418,7 @@ def identifiability_text(ev: Evaluation) -> str:
     if not ev.identifiable:
         return ''
     n = ev.parameters or ev.final_dh.size
-    band = chi2.ppf([0.025, 0.975], ev.identifiable)
+    band = ev.nees_band
     text = (f'\nidentifiable {ev.identifiable} of {n} parameter combinations; final NEES on them '
             f'{ev.nees_identifiable:.1f} (95% band {band[0]:.1f}-{band[1]:.1f})')
     for line in ev.unidentifiable:

@@ -26,6 +26,7 @@ __all__ = [
     'PARAMS_PER_LINK',
     'dh_link_transforms',
     'chain_frames',
+    'equivalent_table',
     'forward_kinematics',
     'pose_jacobian_dh',
     'pose_jacobian_from_frames',
@@ -253,3 +254,50 @@ def rotation_angle_deg(r_a: ArrayLike, r_b: ArrayLike) -> NDArray[np.float64]:
                     rel[..., 1, 0] - rel[..., 0, 1]], axis=-1)
     cos = (np.trace(rel, axis1=-2, axis2=-1) - 1.0) / 2.0
     return np.degrees(np.arctan2(np.linalg.norm(vee, axis=-1) / 2.0, cos))
+
+
+def _wrap(angle: NDArray[np.float64]) -> NDArray[np.float64]:
+    return (angle + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def equivalent_table(dh: ArrayLike, near: ArrayLike) -> NDArray[np.float64]:
+    """The table that moves the hand exactly as ``dh`` does, written as close to ``near`` as it can be.
+
+    A standard DH table is not unique: ``Rz(pi) Tx(a) Rx(alpha) = Tx(-a) Rx(-alpha) Rz(pi)``, so
+    ``(offset_i + pi, -a_i, -alpha_i)`` with ``offset_(i+1) + pi`` gives the same forward
+    kinematics for every configuration; and every angle is defined modulo 2 pi. An estimate from
+    a far initial guess can settle on such a twin of the truth (the UR5e's elbow with ``a > 0``
+    and both neighbouring offsets turned by pi). Scoring it against the truth as written would
+    count a perfect estimate as pi radians off; scoring it against this equivalent table does not.
+
+    Parameters
+    ----------
+    dh : array_like, shape (L, 4)
+        The table to rewrite (e.g. the truth).
+    near : array_like, shape (L, 4)
+        The table to be close to (e.g. the estimate).
+
+    Returns
+    -------
+    ndarray, shape (L, 4)
+        Same forward kinematics as ``dh``; a link is turned (links 0 .. L-2: the last one's
+        trailing turn would move the flange) where that brings its ``a``, ``alpha`` and
+        ``offset`` closer to ``near``'s; every angle within pi of ``near``'s.
+    """
+    out = np.array(dh, dtype=float)
+    ref = np.asarray(near, dtype=float)
+    if out.shape != ref.shape or out.ndim != 2 or out.shape[1] != PARAMS_PER_LINK:
+        raise ValueError(f'equivalent_table: tables of shape (L, 4) needed, got {out.shape} and {ref.shape}')
+
+    def gap(row: NDArray[np.float64], r: NDArray[np.float64]) -> float:
+        return float(abs(row[0] - r[0]) + abs(_wrap(row[2] - r[2])) + abs(_wrap(row[3] - r[3])))
+
+    for i in range(len(out) - 1):
+        turned = out[i] + np.array([0.0, 0.0, 0.0, np.pi])
+        turned[0], turned[2] = -turned[0], -turned[2]
+        if gap(turned, ref[i]) < gap(out[i], ref[i]):
+            out[i] = turned
+            out[i + 1, 3] += np.pi
+    for col in (2, 3):
+        out[:, col] = ref[:, col] + _wrap(out[:, col] - ref[:, col])
+    return out

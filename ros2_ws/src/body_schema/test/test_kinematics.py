@@ -90,3 +90,20 @@ def test_so3_log_matches_scipy(angle_deg):
     if angle_deg < 180.0:                      # at exactly pi, w and -w are the same rotation
         np.testing.assert_allclose(got, w, atol=1e-9)
     np.testing.assert_allclose(Rotation.from_rotvec(got).as_matrix(), r, atol=1e-9)
+
+
+def test_equivalent_table_finds_the_twin_an_estimate_settled_on():
+    # The UR5e's elbow with a > 0 and both neighbouring offsets turned by pi (one trial in 48 of
+    # tools.error_replay settles there): the same hand poses, written another way.
+    ur = body_schema.load_robot('ur5e')
+    twin = ur.dh.copy()
+    twin[2, 0], twin[2, 2], twin[2, 3], twin[3, 3] = -twin[2, 0], -twin[2, 2], twin[2, 3] + np.pi, twin[3, 3] + np.pi
+    twin[0, 3] += 2 * np.pi                                  # and an angle a turn away
+    q = uniform_configs(ur.calibration_box, 20, 0)
+    assert np.abs(kinematics.forward_kinematics(ur.base, twin, q)
+                  - kinematics.forward_kinematics(ur.base, ur.dh, q)).max() < 1e-12
+    np.testing.assert_allclose(kinematics.equivalent_table(ur.dh, twin), twin, atol=1e-12)
+    np.testing.assert_allclose(kinematics.equivalent_table(twin, ur.dh), ur.dh, atol=1e-12)
+    np.testing.assert_allclose(kinematics.equivalent_table(ur.dh, ur.dh + 0.01), ur.dh, atol=1e-12)  # near: as is
+    with pytest.raises(ValueError, match=r'tables of shape \(L, 4\) needed, got \(6, 4\) and \(5, 4\)'):
+        kinematics.equivalent_table(ur.dh, ur.dh[:5])

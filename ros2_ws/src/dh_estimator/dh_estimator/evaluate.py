@@ -46,6 +46,7 @@ from scipy.stats import chi2
 from body_schema import load_robot, sampling
 from body_schema.extrinsics import absorbed_parameters, align_truth, perturb_pose, pose_delta
 from body_schema.identifiability import subspace_nees
+from body_schema.kinematics import equivalent_table
 from body_schema.map_estimator import COVARIANCES, LOSSES
 from body_schema.metrics import PoseErrorEvaluator, expected_pose_errors
 from body_schema.noise import NOISE_MODELS
@@ -317,8 +318,12 @@ def true_state(estimator: OnlineEstimator, true_dh: NDArray[np.float64],
 
     With extrinsics, the truth is taken in the estimate's gauge (:func:`body_schema.extrinsics.align_truth`):
     the parameters a camera or marker absorbs at the estimate's held values, the camera and the
-    marker moved so that the camera sees the same.
+    marker moved so that the camera sees the same. Either way the true table is first written as
+    its kinematic twin nearest the estimate (:func:`body_schema.kinematics.equivalent_table`), so
+    an estimate on the other branch of a DH symmetry is scored by what it does, not how it is
+    written.
     """
+    true_dh = equivalent_table(true_dh, estimator.dh)
     ex = estimator.extrinsics
     if ex is None:
         return true_dh.ravel(), {}
@@ -452,7 +457,7 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument('--estimator', choices=list(ESTIMATORS), help="'map' (online MAP) or 'ekf' (the paper's)")
     ap.add_argument('--loss', choices=list(LOSSES), help='MAP robust loss')
     ap.add_argument('--covariance', choices=list(COVARIANCES),
-                    help="MAP posterior covariance: 'sandwich' (robust) or 'gauss_newton'")
+                    help="MAP posterior covariance (default: the robot description's, else 'sandwich')")
     ap.add_argument('--change-probability', type=float, help='MAP change detection (0: off)')
     ap.add_argument('--iterations', type=int, help='EKF linearisations per update')
     ap.add_argument('--gate-probability', type=float)

@@ -341,3 +341,21 @@ def test_camera_and_marker_are_scored_against_the_truth_in_the_tables_gauge(tmp_
         assert np.isfinite(ev.nees_identifiable)
     else:
         assert np.all(np.isnan(err)) and np.isnan(ev.nees_identifiable)
+
+
+def test_the_truth_is_scored_on_the_branch_of_the_table_the_estimate_took() -> None:
+    # An estimate on the UR5e's twin table (elbow a > 0, its offset and the next turned by pi)
+    # moves the hand exactly as the truth: its error is zero, not pi.
+    from dh_estimator.estimator import EstimatorSettings
+    from dh_estimator.evaluate import true_state
+
+    ur = load_robot('ur5e')
+    twin = ur.dh.copy()
+    twin[2, 0], twin[2, 3], twin[3, 3] = -twin[2, 0], twin[2, 3] + np.pi, twin[3, 3] + np.pi
+    P0 = sampling.initial_covariance(ur.n_joints)  # noqa: N806
+    plain = OnlineEstimator(ur, twin, P0)
+    assert np.abs(true_state(plain, ur.dh, None)[0] - twin.ravel()).max() < 1e-12
+    with_camera = OnlineEstimator(ur, twin, P0, EstimatorSettings(camera_prior='0.02 2', marker_prior='0.005 5'))
+    x, errors = true_state(with_camera, ur.dh, (np.zeros(6), np.zeros(6)))
+    assert np.abs(x - with_camera.x).max() < 1e-9                       # the estimate is the truth
+    assert max(abs(v) for b in errors.values() for v in b[0]) < 1e-6

@@ -25,6 +25,7 @@ import argparse
 import dataclasses
 import sys
 import time
+from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
@@ -32,7 +33,7 @@ from numpy.typing import NDArray
 from scipy.stats import chi2
 
 from body_schema import sampling
-from body_schema.identifiability import subspace_nees
+from body_schema.identifiability import average_nees_band, subspace_nees
 from body_schema.metrics import PoseErrorEvaluator
 from body_schema.noise import PoseDependentNoise
 from body_schema.robot import ArmModel, load_robot
@@ -42,7 +43,7 @@ from dh_estimator.evaluate import true_state
 from marker_detector.detection import DetectorConfig, HandPoseEstimator, gate_marker
 from tools.fit_noise import views_of
 
-__all__ = ['parse_variant', 'observations', 'replay', 'main']
+__all__ = ['parse_variant', 'observations', 'cached_observations', 'replay', 'main']
 
 Observation = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]     # q, pose, R
 
@@ -86,9 +87,31 @@ def observations(model: ArmModel, n: int, seed: int) -> list[Observation]:
     return out
 
 
+def cached_observations(model: ArmModel, n: int, seed: int, path: Path | None) -> list[Observation]:
+    """:func:`observations`, read from / written to ``path`` (an .npz keyed by robot, n and seed).
+
+    Raises
+    ------
+    ValueError
+        If ``path`` holds the detections of another robot, ``n`` or ``seed``.
+    """
+    key = f'{model.name}/{n}/{seed}'
+    if path is not None and path.exists():
+        with np.load(path) as d:
+            if str(d['key']) != key:
+                raise ValueError(f'{path} holds the detections of {d["key"]}, not {key} (robot/n/seed)')
+            return list(zip(d['q'], d['pose'], d['R']))
+    pool = observations(model, n, seed)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.savez(path, key=key, q=np.array([o[0] for o in pool]), pose=np.array([o[1] for o in pool]),
+                 R=np.array([o[2] for o in pool]))
+    return pool
+
+
 def replay(model: ArmModel, pool: Sequence[Observation], settings: EstimatorSettings, trials: int,
            n_obs: int) -> dict[str, NDArray[np.float64]]:
-    """Per trial: NEES, band, changes, outliers, flange error [mm] of the final estimate."""
+    """Per trial: NEES, changes, outliers, flange error [mm] of the final estimate; the NEES's band and dof."""
     rows: dict[str, list[float]] = {k: [] for k in ('nees', 'changes', 'outliers', 'position_mm')}
     band = None
     for t in range(trials):
@@ -107,7 +130,7 @@ def replay(model: ArmModel, pool: Sequence[Observation], settings: EstimatorSett
         rows['position_mm'].append(
             PoseErrorEvaluator(model.base, true_x[:model.n_params].reshape(model.dh.shape),
                                model.calibration_box)(est.dh).position_mm)
-    return {**{k: np.array(v) for k, v in rows.items()}, 'band': np.asarray(band)}
+    return {**{k: np.array(v) for k, v in rows.items()}, 'band': np.asarray(band), 'dof': int(basis.shape[1])}
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -120,14 +143,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument('--camera-prior', default='', help='as the estimator parameter, e.g. "0.02 2"')
     ap.add_argument('--marker-prior', default='', help='e.g. "0.005 5"')
     ap.add_argument('--variant', action='append', default=[], help='name=value[,name=value]; repeatable')
+    ap.add_argument('--pool', type=Path, default=None,
+                    help='.npz of the accepted detections: loaded if it exists (for the same --robot, '
+                         '--n and --seed), else rendered and saved there')
     args = ap.parse_args(argv)
     try:
         variants = [parse_variant(v) for v in (args.variant or ['covariance=sandwich'])]
     except ValueError as exc:
         ap.error(str(exc))
+    if args.trials < 1 or args.observations < 1:
+        ap.error(f'--trials and --observations must be >= 1, got {args.trials} and {args.observations}')
     model = load_robot(args.robot)
     t0 = time.perf_counter()
-    pool = observations(model, args.n, args.seed)
+    try:
+        pool = cached_observations(model, args.n, args.seed, args.pool)
+    except ValueError as exc:
+        ap.error(str(exc))
     if len(pool) < args.observations:
         print(f'error_replay: only {len(pool)} accepted detections, fewer than --observations '
               f'{args.observations}', file=sys.stderr)
@@ -135,15 +166,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     lines = [f'{len(pool)} accepted detections of {args.n} configurations ({model.name}, seed {args.seed}), '
              f'{args.trials} trials of {args.observations}; priors camera {args.camera_prior or "known"}, '
              f'marker {args.marker_prior or "known"}.', '',
-             '| variant | NEES median (mean) | in the 95% band | trials with a (false) change | outliers / trial | '
-             'flange error [mm] mean / median / max |', '|---|---|---|---|---|---|']
+             '| variant | NEES median (mean) | in the 95% band | average NEES in its 95% band | trials with a (false) '
+             'change | outliers / trial | flange error [mm] mean / median / max |', '|---|---|---|---|---|---|---|']
     for v in variants:
         settings = EstimatorSettings(camera_prior=args.camera_prior, marker_prior=args.marker_prior, **v)
         r = replay(model, pool, settings, args.trials, args.observations)
         inside = int(np.sum((r['nees'] >= r['band'][0]) & (r['nees'] <= r['band'][1])))
+        lo, hi = average_nees_band([r['dof']] * args.trials)
+        mean = float(np.mean(r['nees']))
         name = ', '.join(f'{k}={val}' for k, val in v.items()) or 'defaults'
         lines.append(f'| {name} | {np.median(r["nees"]):.1f} ({np.mean(r["nees"]):.3g}) | {inside} of {args.trials} '
-                     f'({r["band"][0]:.1f}-{r["band"][1]:.1f}) | {int(np.sum(r["changes"] > 0))} | '
+                     f'({r["band"][0]:.1f}-{r["band"][1]:.1f}) | {"yes" if lo <= mean <= hi else "no"} ({lo:.1f}-{hi:.1f}) | '
+                     f'{int(np.sum(r["changes"] > 0))} | '
                      f'{np.mean(r["outliers"]):.1f} | {np.mean(r["position_mm"]):.2f} / '
                      f'{np.median(r["position_mm"]):.2f} / {np.max(r["position_mm"]):.2f} |')
         print(lines[-1], flush=True)

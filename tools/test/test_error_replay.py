@@ -7,7 +7,7 @@ import pytest
 from body_schema import load_robot, sampling
 from body_schema.noise import PoseDependentNoise, sample_pose
 from dh_estimator.estimator import EstimatorSettings
-from tools.error_replay import parse_variant, replay
+from tools.error_replay import cached_observations, parse_variant, replay
 
 
 def test_variants_are_typed_by_the_setting_defaults_and_bad_ones_named() -> None:
@@ -33,3 +33,23 @@ def test_replay_of_errors_drawn_from_the_law_is_consistent() -> None:
     r = replay(arm, pool, EstimatorSettings(), trials=4, n_obs=60)
     assert r['band'][0] < np.median(r['nees']) < r['band'][1]
     assert not r['changes'].any() and np.all(r['position_mm'] < 3.0)
+
+
+def test_a_saved_pool_is_read_back_and_one_of_another_robot_refused(tmp_path, monkeypatch) -> None:
+    from tools import error_replay
+
+    arm = load_robot()
+    rendered = []
+
+    def fake(model, n, seed):                           # stands in for the renderer
+        rendered.append((n, seed))
+        q = sampling.uniform_configs(model.calibration_box, n, seed)
+        return [(qi, model.forward_kinematics(qi), np.eye(6) * 1e-6) for qi in q]
+    monkeypatch.setattr(error_replay, 'observations', fake)
+    path = tmp_path / 'pool.npz'
+    first = cached_observations(arm, 5, 2, path)
+    again = cached_observations(arm, 5, 2, path)
+    assert rendered == [(5, 2)] and len(again) == 5                  # rendered once, then read
+    assert all(np.allclose(a, b) for x, y in zip(first, again) for a, b in zip(x, y))
+    with pytest.raises(ValueError, match=r"holds the detections of icub_right_arm/5/2, not icub_right_arm/6/2"):
+        cached_observations(arm, 6, 2, path)

@@ -35,6 +35,10 @@ def test_summary_counts_the_band_and_the_sigmas() -> None:
     text = summarise(records, {1: 0, 2: 1}, 'cmd')
     assert '| 2 | 1 | 48 / 50 |' in text and '60.0 (out) (15.3-44.5)' in text
     assert 'inside the 95% band in 1 of 2 runs' in text
+    # The average over the runs against its own (narrower) band: (28 + 60) / 2 = 44 > 39.3.
+    assert 'average over the runs 44.0, OUTSIDE its 95% band 18.6-39.3' in text and 'all 2 with 0.90' in text
+    assert 'average over the runs 30.0, inside' in summarise({1: _record(0.6, 28.0, [0.0] * 6),
+                                                              2: _record(0.6, 32.0, [0.0] * 6)}, {}, 'cmd')
     assert 'mean 0.80, median 0.80, min 0.60, max 1.00' in text
     assert 'camera pose components within one sigma: 10 of 12' in text and 'within two: 11' in text
     assert "exited non-zero (see `seed_<S>.log`; 1 is the launcher's UNHEALTHY RUN): [2]" in text

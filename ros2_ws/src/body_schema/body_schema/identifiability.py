@@ -24,10 +24,12 @@ camera and the marker free: the base frame and the flange frame stay the table's
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 import scipy.linalg
 from numpy.typing import ArrayLike, NDArray
+from scipy.stats import chi2
 
 from . import kinematics
 from .extrinsics import Extrinsics
@@ -36,7 +38,7 @@ from .robot import ArmModel
 from .sampling import uniform_configs
 
 __all__ = ['DH_FIELDS', 'Identifiability', 'parameter_names', 'analyse', 'analyse_jacobian',
-           'parallel_axis_groups', 'subspace_nees']
+           'parallel_axis_groups', 'subspace_nees', 'average_nees_band']
 
 #: Names of a link's four DH parameters, in the order of a table row.
 DH_FIELDS = ('a', 'd', 'alpha', 'offset')
@@ -290,3 +292,34 @@ def subspace_nees(error: ArrayLike, P: ArrayLike, basis: ArrayLike) -> float:  #
     u = np.asarray(basis, dtype=float)
     e = u.T @ np.asarray(error, dtype=float)
     return float(e @ np.linalg.solve(u.T @ np.asarray(P, dtype=float) @ u, e))
+
+
+def average_nees_band(dofs: Sequence[int], probability: float = 0.95) -> tuple[float, float]:
+    """Two-sided band of the average NEES over independent runs (Bar-Shalom, Li and Kirubarajan,
+    *Estimation with Applications to Tracking and Navigation*, 2001, sec. 5.4.2).
+
+    The sum of the NEES of consistent runs with ``dofs`` degrees of freedom is chi-square with
+    ``sum(dofs)``; the band of their mean is that distribution's band over the number of runs.
+    It is the test of consistency over many runs; one run's NEES in its own 95 % band is a much
+    weaker statement (a consistent estimator has all of 10 runs inside with probability 0.6).
+
+    Parameters
+    ----------
+    dofs : sequence of int, length N >= 1
+        Degrees of freedom of each run's NEES.
+    probability : float
+        Coverage of the band.
+
+    Raises
+    ------
+    ValueError
+        If ``dofs`` is empty or holds a value below 1, or ``probability`` is not in (0, 1).
+    """
+    k = np.asarray(dofs, dtype=float)
+    if k.size == 0 or np.any(k < 1):
+        raise ValueError(f'average_nees_band: dofs must be >= 1 and not empty, got {list(dofs)}')
+    if not 0.0 < probability < 1.0:
+        raise ValueError(f'average_nees_band: probability must be in (0, 1), got {probability}')
+    tail = (1.0 - probability) / 2.0
+    lo, hi = chi2.ppf([tail, 1.0 - tail], k.sum()) / k.size
+    return float(lo), float(hi)

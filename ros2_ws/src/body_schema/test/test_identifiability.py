@@ -99,6 +99,22 @@ def test_subspace_nees_is_the_chi_square_of_the_projected_error():
     assert np.isclose(subspace_nees(e, P, u), e[:2] @ np.linalg.solve(P[:2, :2], e[:2]))
 
 
+def test_average_nees_band_is_the_band_of_the_summed_chi_square_over_the_runs():
+    from scipy.stats import chi2
+
+    from body_schema.identifiability import average_nees_band
+
+    assert np.allclose(average_nees_band([28]), chi2.ppf([0.025, 0.975], 28))      # one run: its own band
+    lo, hi = average_nees_band([28] * 10)
+    assert np.allclose((lo, hi), chi2.ppf([0.025, 0.975], 280) / 10)
+    assert 23.0 < lo < 24.0 and 32.5 < hi < 33.0                                    # far narrower than 15.3-44.5
+    assert np.allclose(average_nees_band([20, 36]), chi2.ppf([0.025, 0.975], 56) / 2)
+    with pytest.raises(ValueError, match=r'dofs must be >= 1 and not empty, got \[\]'):
+        average_nees_band([])
+    with pytest.raises(ValueError, match='probability must be in'):
+        average_nees_band([3], probability=1.0)
+
+
 def _ur_observations(true_dh: np.ndarray, n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     rng = np.random.default_rng(seed)
     qs = uniform_configs(UR5E.calibration_box, n, seed)

@@ -6,12 +6,13 @@ import dataclasses
 import numpy as np
 import pytest
 import yaml
+from scipy.spatial.transform import Rotation
 
 from body_schema import load_robot
 from body_schema.noise import PoseDependentNoise
 from body_schema.robot import robot_from_dict, robot_path
 from tools.detector_accuracy import FrameScores, draw_scores
-from tools.fit_noise import calibration_of, law_yaml, main, tails, views_of
+from tools.fit_noise import calibration_of, law_yaml, main, shape, tails, views_of
 
 
 def _draw(law: PoseDependentNoise, n: int, seed: int) -> FrameScores:
@@ -23,6 +24,8 @@ def test_the_printed_block_is_a_description_block_that_loads_back() -> None:
     data = yaml.safe_load(robot_path('ur5e').read_text())
     data.update(yaml.safe_load(law_yaml(law, 'fitted')))
     assert PoseDependentNoise.for_robot(robot_from_dict(data)) == law
+    data.update(yaml.safe_load(law_yaml(law, 'fitted', 'sandwich_hc3')))
+    assert robot_from_dict(data).noise_covariance == 'sandwich_hc3'
 
 
 def test_calibration_figures_are_one_for_the_true_law_and_show_a_pessimistic_one() -> None:
@@ -59,3 +62,16 @@ def test_tails_tell_gaussian_errors_from_heavy_tailed_ones() -> None:
     heavy = dataclasses.replace(heavy, pos_err=heavy.pos_err / np.sqrt(w), rot_err=heavy.rot_err / np.sqrt(w))
     t = tails(law, heavy)
     assert t['dof'] == pytest.approx(1.3, rel=0.2) and t['beyond_9999'] > 0.05
+
+
+def test_shape_sees_a_depth_error_the_isotropic_law_does_not_describe() -> None:
+    law = PoseDependentNoise(3e-7, 1e-8, 1.3e-6, 2e-8, 1e-8, 3e-7)
+    out = _draw(law, 4000, 3)
+    turn = Rotation.from_euler('x', 90, degrees=True).as_matrix()      # camera z = root -y
+    cams = np.repeat(turn[None], out.r.size, axis=0)
+    iso = shape(law, out, cams)
+    assert np.allclose(iso['position'] + iso['rotation'], 1.0, atol=0.1) and iso['ratio'] < 1.15
+    deep = dataclasses.replace(out, pos_vec=out.pos_vec * np.array([1.0, 7.0, 1.0]))   # 7x along root y = depth
+    aniso = shape(law, deep, cams)
+    assert aniso['position'][2] == pytest.approx(7.0, rel=0.1) and aniso['position'][0] == pytest.approx(1.0, rel=0.1)
+    assert aniso['ratio'] == pytest.approx(7.0, rel=0.15)

@@ -143,6 +143,11 @@ class ArmModel:
         Coefficients of the pose-dependent observation-noise law fitted for this description's
         camera and marker (``noise_model:`` in the YAML; keys of
         :class:`body_schema.noise.PoseDependentNoise`); empty: the built-in defaults.
+    noise_covariance : str
+        How the estimator should turn this camera's errors into its posterior covariance
+        (``noise_model: {covariance: ...}``, one of
+        :data:`body_schema.map_estimator.COVARIANCES`), where the law's shape is known to be
+        wrong; empty: the estimator's default.
     """
 
     name: str
@@ -160,6 +165,7 @@ class ArmModel:
     fixed_cameras: dict[str, NDArray[np.float64]] = field(default_factory=dict, compare=False)
     scenery: tuple[SceneryBox, ...] = ()
     noise_law: dict[str, float] = field(default_factory=dict, compare=False)
+    noise_covariance: str = ''
     extra: dict[str, Any] = field(default_factory=dict, compare=False, repr=False)
 
     @property
@@ -369,7 +375,8 @@ def robot_from_dict(data: dict[str, Any], source: str = '<dict>') -> ArmModel:
     if 'hand_markers' in data:
         dictionary, side, markers = _markers(data['hand_markers'], where + 'hand_markers.', scale)
 
-    noise_law = _noise_law(data['noise_model'], where + 'noise_model') if 'noise_model' in data else {}
+    noise_law, noise_covariance = (_noise_law(data['noise_model'], where + 'noise_model')
+                                   if 'noise_model' in data else ({}, ''))
 
     known = {'name', 'root_frame', 'angle_unit', 'H0', 'torso', 'joints', 'calibration_box',
              'eyes', 'camera', 'hand_markers', 'fixed_cameras', 'scenery', 'noise_model'}
@@ -389,6 +396,7 @@ def robot_from_dict(data: dict[str, Any], source: str = '<dict>') -> ArmModel:
         fixed_cameras=fixed,
         scenery=scenery,
         noise_law=noise_law,
+        noise_covariance=noise_covariance,
         extra={k: v for k, v in data.items() if k not in known},
     )
 
@@ -397,12 +405,20 @@ def robot_from_dict(data: dict[str, Any], source: str = '<dict>') -> ArmModel:
 NOISE_LAW_KEYS: tuple[str, ...] = ('a_pos', 'b_pos', 'floor_pos', 'a_rot', 'b_rot', 'floor_rot')
 
 
-def _noise_law(n: Any, where: str) -> dict[str, float]:
+def _noise_law(n: Any, where: str) -> tuple[dict[str, float], str]:
+    """The law's coefficients and the optional ``covariance`` the estimator should use."""
+    from .map_estimator import COVARIANCES     # here: map_estimator is a higher layer than robot
+
     if not isinstance(n, dict):
-        raise RobotDescriptionError(f'{where}: must be a mapping of {list(NOISE_LAW_KEYS)}')
+        raise RobotDescriptionError(f'{where}: must be a mapping of {list(NOISE_LAW_KEYS)} (and covariance)')
+    n = dict(n)
+    covariance = n.pop('covariance', '')
+    if covariance and covariance not in COVARIANCES:
+        raise RobotDescriptionError(f'{where}.covariance: must be one of {list(COVARIANCES)}, got {covariance!r}')
     unknown = sorted(set(n) - set(NOISE_LAW_KEYS))
     if unknown:
-        raise RobotDescriptionError(f'{where}: unknown keys {unknown}; expected some of {list(NOISE_LAW_KEYS)}')
+        raise RobotDescriptionError(f'{where}: unknown keys {unknown}; expected some of '
+                                    f'{list(NOISE_LAW_KEYS) + ["covariance"]}')
     law = {}
     for k, v in n.items():
         try:
@@ -411,7 +427,7 @@ def _noise_law(n: Any, where: str) -> dict[str, float]:
             raise RobotDescriptionError(f'{where}.{k}: must be a number, got {v!r}') from exc
         if not np.isfinite(law[k]) or law[k] < 0:
             raise RobotDescriptionError(f'{where}.{k}: must be finite and >= 0, got {v!r}')
-    return law
+    return law, covariance
 
 
 def _eyes(e: Any, h0: NDArray[np.float64], where: str, scale: float) -> EyeChain:

@@ -184,7 +184,7 @@ def test_innovation_is_what_the_update_reports_and_changes_nothing(arm):
 # --------------------------------------------------------------------------------------------
 # The robust estimate's own covariance (Huber's sandwich)
 
-def _robust_fits(noise, trials: int = 300, n: int = 150, seed: int = 0):
+def _robust_fits(noise, trials: int = 300, n: int = 150, seed: int = 0, leverage: bool = False):
     """Robust (Cauchy, scale 3) fits of a linear model with unit stated noise: the estimates' errors
     and the sandwich and Gauss-Newton covariances each fit reported."""
     from scipy.optimize import least_squares
@@ -203,7 +203,7 @@ def _robust_fits(noise, trials: int = 300, n: int = 150, seed: int = 0):
             return np.concatenate([jp @ b, y - X @ b])
         res = least_squares(fun, np.zeros(4), loss='cauchy', f_scale=3.0)
         errors.append(res.x - beta)
-        sandwiches.append(sandwich_covariance(jp, -X, res.fun[4:], 'cauchy', 3.0))
+        sandwiches.append(sandwich_covariance(jp, -X, res.fun[4:], 'cauchy', 3.0, leverage=leverage))
     gauss_newton = np.linalg.inv(jp.T @ jp + X.T @ X)
     return np.array(errors), np.array(sandwiches), gauss_newton
 
@@ -226,6 +226,35 @@ def test_sandwich_is_consistent_where_a_variance_matched_gaussian_law_is_not():
     assert np.mean(nees) == pytest.approx(4.0, rel=0.2)
 
 
+def test_leverage_corrected_spread_is_gauss_newton_or_a_little_more_for_gaussian_noise():
+    errors, sandwiches, gn = _robust_fits(lambda rng, n: rng.normal(size=n), leverage=True)
+    ratio = np.trace(sandwiches.mean(axis=0)) / np.trace(gn)
+    assert 1.0 < ratio < 1.2
+    nees = np.einsum('ti,tij,tj->t', errors, np.linalg.inv(sandwiches), errors)
+    assert np.mean(nees) == pytest.approx(4.0, rel=0.15)
+
+
+def test_leverage_correction_grows_where_few_observations_inform_a_direction():
+    # The same residuals, two designs: every row alike, or parameter 3 seen by 3 rows of 150
+    # (as an active selector's few decisive poses). The degrees-of-freedom spread cannot tell
+    # them apart; the leverage-corrected one inflates the second.
+    from body_schema.map_estimator import sandwich_covariance
+
+    rng = np.random.default_rng(4)
+    u = rng.normal(size=150)
+    even = rng.normal(size=(150, 4))
+    uneven = even.copy()
+    uneven[3:, 3] = 0.0
+    uneven[:3, 3] *= 3.0
+    jp = 1e-3 * np.eye(4)
+
+    def inflation(x):
+        return np.trace(sandwich_covariance(jp, x, u, 'cauchy', 3.0, leverage=True)) / \
+            np.trace(sandwich_covariance(jp, x, u, 'cauchy', 3.0))
+    assert 0.98 < inflation(even) < 1.05
+    assert inflation(uneven) > inflation(even) + 0.05
+
+
 def test_sandwich_declines_without_enough_residuals():
     from body_schema.map_estimator import sandwich_covariance
 
@@ -234,5 +263,6 @@ def test_sandwich_declines_without_enough_residuals():
     assert sandwich_covariance(np.eye(6) * 1e-3, jo, rng.normal(size=12), 'cauchy', 3.0) is None   # 6 dof left
     far = 100 * (1 + rng.random(12))                   # every residual beyond the loss scale: no spread to measure
     assert sandwich_covariance(np.eye(6) * 1e-3, jo, far, 'cauchy', 3.0, min_dof=1) is None
+    assert sandwich_covariance(np.eye(6) * 1e-3, jo, far, 'cauchy', 3.0, min_dof=1, leverage=True) is None
     with pytest.raises(ValueError, match="covariance must be one of .*'sandwich'.*got 'robust'"):
         MapSettings(covariance='robust')

@@ -54,6 +54,8 @@ def test_with_dh_builds_another_model():
     (lambda d: d.__setitem__('noise_model', {'a_p0s': 1e-7}), r"noise_model: unknown keys \['a_p0s'\]"),
     (lambda d: d.__setitem__('noise_model', {'b_rot': 'small'}), r"noise_model\.b_rot: must be a number, got 'small'"),
     (lambda d: d.__setitem__('noise_model', [1e-7]), r'noise_model: must be a mapping'),
+    (lambda d: d.__setitem__('noise_model', {'covariance': 'robust'}),
+     r"noise_model\.covariance: must be one of \['sandwich', 'sandwich_hc3', 'gauss_newton'\], got 'robust'"),
 ])
 def test_bad_descriptions_name_the_field(tmp_path, raw, mutate, message):
     data = copy.deepcopy(raw)
@@ -112,3 +114,22 @@ def test_a_fitted_noise_law_replaces_the_defaults_it_names(tmp_path, raw):
     ur = PoseDependentNoise.for_robot(body_schema.load_robot('ur5e'))
     # The UR5e's 1280x1024 camera and 8 cm marker: far below the iCub law at its distance (1.7 m, 20 deg).
     assert ur.variances(1.7, 20.0)[1] < PoseDependentNoise().variances(1.7, 20.0)[1] / 50
+
+
+def test_a_description_can_name_the_covariance_its_errors_need(tmp_path, raw):
+    from dh_estimator.estimator import EstimatorSettings, OnlineEstimator
+    from body_schema.sampling import initial_covariance
+
+    data = copy.deepcopy(raw)
+    data['noise_model'] = {'a_pos': 3e-7, 'covariance': 'sandwich_hc3'}
+    arm = body_schema.load_robot(_write(tmp_path, data))
+    assert (arm.noise_law, arm.noise_covariance) == ({'a_pos': 3e-7}, 'sandwich_hc3')
+    assert body_schema.load_robot('icub_right_arm').noise_covariance == ''
+    assert body_schema.load_robot('ur5e').noise_covariance == 'sandwich_hc3'
+
+    def used(model, **kw):
+        est = OnlineEstimator(model, model.dh, initial_covariance(model.n_joints), EstimatorSettings(**kw))
+        return est.map.settings.covariance
+    assert used(arm) == 'sandwich_hc3'                                       # the description's
+    assert used(arm, covariance='gauss_newton') == 'gauss_newton'            # a parameter wins
+    assert used(body_schema.load_robot('icub_right_arm')) == 'sandwich'      # none named: the default

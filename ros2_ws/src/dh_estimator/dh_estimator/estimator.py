@@ -109,10 +109,13 @@ class EstimatorSettings:
     jump_angle: float = setting(_MAP.jump_angle, 'MAP: standard deviation of a detected change for alpha, '
                                 'offset [rad]', (1e-6, 3.2))
     max_nfev: int = setting(_MAP.max_nfev, 'MAP: residual evaluations per re-solve', (1, 10000))
-    covariance: str = setting(_MAP.covariance, "MAP: posterior covariance, 'sandwich' (the robust estimate's own, "
-                              "with the residuals' spread measured at the solution: consistent when the noise "
-                              "law is right only up to its scale or tails) or 'gauss_newton' (the stated noise "
-                              "taken as exact)", choices=COVARIANCES)
+    covariance: str = setting('', "MAP: posterior covariance, 'sandwich' (the robust estimate's own, with the "
+                              "residuals' spread measured at the solution: consistent when the noise law is "
+                              "right only up to its scale or tails), 'sandwich_hc3' (the spread of "
+                              "leverage-corrected residuals: also when few observations inform a "
+                              "direction) or 'gauss_newton' (the stated noise "
+                              "taken as exact); empty: the robot description's noise_model.covariance, else "
+                              f"'{_MAP.covariance}'", choices=('',) + COVARIANCES)
     camera_prior: str = setting('', 'MAP: estimate the camera pose with the table, prior one-sigma per axis '
                                 '"<m> <deg>" (e.g. "0.02 2" for a tape-measured tripod); empty or 0: known')
     marker_prior: str = setting('', 'MAP: estimate the marker offset on the flange, prior one-sigma per axis '
@@ -124,15 +127,16 @@ class EstimatorSettings:
         return (extrinsics_mod.parse_std(self.camera_prior, 'camera_prior'),
                 extrinsics_mod.parse_std(self.marker_prior, 'marker_prior'))
 
-    def map_settings(self) -> MapSettings:
-        """The MAP estimator's settings (validated there)."""
+    def map_settings(self, covariance: str = '') -> MapSettings:
+        """The MAP estimator's settings (validated there); ``covariance`` is used where :attr:`covariance` is empty."""
         return MapSettings(loss=self.loss, loss_scale=self.loss_scale,
                            outlier_probability=self.outlier_probability, max_nfev=self.max_nfev,
                            window=self.window, q_length=self.q_length, q_angle=self.q_angle,
                            change_probability=self.change_probability, change_window=self.change_window,
                            change_count=self.change_count, warmup=self.warmup,
                            jump_length=self.jump_length,
-                           jump_angle=self.jump_angle, covariance=self.covariance)
+                           jump_angle=self.jump_angle,
+                           covariance=self.covariance or covariance or _MAP.covariance)
 
     def __post_init__(self) -> None:
         if self.estimator not in ESTIMATORS:
@@ -194,7 +198,8 @@ class OnlineEstimator:
         # the export and the report name them.
         self.identifiability = identifiability.analyse(model, extrinsics=self.extrinsics)
         if settings.estimator == 'map':
-            self.map = MapEstimator(model.base, x0, P0, settings.map_settings(), limits=model.limits,
+            self.map = MapEstimator(model.base, x0, P0, settings.map_settings(model.noise_covariance),
+                                    limits=model.limits,
                                     fixed_directions=self.identifiability.held_directions, fixed_std=FIXED_STD,
                                     extrinsics=self.extrinsics)
         else:

@@ -134,7 +134,9 @@ class EstimatorNode(Node):
                                + (f'with the {" and ".join(extras.blocks)} pose ({extras.n} more) '
                                   if extras is not None else '') +
                                f'with the {settings.estimator.upper()} estimator (initial guess: '
-                               f'{s.initial_guess}, noise: {self.noise.noise_model})')
+                               f'{s.initial_guess}, noise: {self.noise.noise_model}'
+                               + (f', covariance: {self.estimator.map.settings.covariance}'
+                                  if self.estimator.map is not None else '') + ')')
 
     def _initial_guess(self, s: EstimatorNodeSettings) -> np.ndarray:
         if s.initial_guess == 'nominal':

@@ -13,11 +13,14 @@ outliers flagged and the mean flange error over the box. Every variant meets the
 Usage (from the repository root)::
 
     python -m tools.error_replay --robot ur5e --camera-prior "0.02 2" --marker-prior "0.005 5" \\
-        --variant covariance=gauss_newton --variant covariance=sandwich \\
-        --variant covariance=sandwich,change_window=4,change_count=3
+        --pool results/replay/ur5e-600-7.npz \\
+        --variant covariance=gauss_newton --variant covariance=sandwich --variant ""
 
 A variant is comma-separated ``name=value`` pairs of
-:class:`dh_estimator.estimator.EstimatorSettings` fields (typed by their defaults).
+:class:`dh_estimator.estimator.EstimatorSettings` fields (typed by their defaults); an empty one
+is the defaults (the covariance the robot description names). Each variant's row also says
+whether the trials' average NEES lies in its own band (:func:`body_schema.identifiability.average_nees_band`).
+``--pool`` keeps the rendered detections, so that a later comparison skips the rendering.
 """
 from __future__ import annotations
 
@@ -142,13 +145,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument('--observations', type=int, default=50)
     ap.add_argument('--camera-prior', default='', help='as the estimator parameter, e.g. "0.02 2"')
     ap.add_argument('--marker-prior', default='', help='e.g. "0.005 5"')
-    ap.add_argument('--variant', action='append', default=[], help='name=value[,name=value]; repeatable')
+    ap.add_argument('--variant', action='append', default=[],
+                    help='name=value[,name=value]; repeatable; "" is the defaults (the description\'s covariance)')
     ap.add_argument('--pool', type=Path, default=None,
                     help='.npz of the accepted detections: loaded if it exists (for the same --robot, '
                          '--n and --seed), else rendered and saved there')
     args = ap.parse_args(argv)
     try:
-        variants = [parse_variant(v) for v in (args.variant or ['covariance=sandwich'])]
+        variants = [parse_variant(v) for v in (args.variant or [''])]
     except ValueError as exc:
         ap.error(str(exc))
     if args.trials < 1 or args.observations < 1:
@@ -176,7 +180,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         mean = float(np.mean(r['nees']))
         name = ', '.join(f'{k}={val}' for k, val in v.items()) or 'defaults'
         lines.append(f'| {name} | {np.median(r["nees"]):.1f} ({np.mean(r["nees"]):.3g}) | {inside} of {args.trials} '
-                     f'({r["band"][0]:.1f}-{r["band"][1]:.1f}) | {"yes" if lo <= mean <= hi else "no"} ({lo:.1f}-{hi:.1f}) | '
+                     f'({r["band"][0]:.1f}-{r["band"][1]:.1f}) | '
+                     f'{"yes" if lo <= mean <= hi else "no"} ({lo:.1f}-{hi:.1f}) | '
                      f'{int(np.sum(r["changes"] > 0))} | '
                      f'{np.mean(r["outliers"]):.1f} | {np.mean(r["position_mm"]):.2f} / '
                      f'{np.median(r["position_mm"]):.2f} / {np.max(r["position_mm"]):.2f} |')

@@ -183,9 +183,9 @@ def run(robot: str, n: int, seed: int, pixel_noise: float) -> tuple[str, NoiseFi
              'instead.'.format(dof=tl['dof'], scale=tl['scale'], beyond=100 * tl['beyond_9999']), '',
              'Shape: along the camera\'s x, y and z (optical axis) the errors\' robust spread over the fitted '
              'law\'s is {p} in position and {o} in rotation (1 where the law is right): largest over smallest '
-             '{ratio:.1f}, where an isotropic law assumes 1.'.format(p=' / '.join(f'{v:.2f}' for v in sh['position']),
-                                                            o=' / '.join(f'{v:.2f}' for v in sh['rotation']),
-                                                            ratio=sh['ratio']), '',
+             '{ratio:.1f}, where an isotropic law assumes 1.'.format(
+                 p=' / '.join(f'{v:.2f}' for v in sh['position']), o=' / '.join(f'{v:.2f}' for v in sh['rotation']),
+                 ratio=sh['ratio']), '',
              ('Tails this heavy (under {:g} degrees of freedom): the block asks the estimator for the '
               'leverage-corrected spread (covariance: sandwich_hc3).'.format(HEAVY_TAILS_DOF) if covariance else
               'Tails near Gaussian: the estimator\'s default covariance.'), '',

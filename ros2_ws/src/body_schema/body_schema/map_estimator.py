@@ -107,8 +107,8 @@ def sandwich_covariance(jp: NDArray[np.float64], jo: NDArray[np.float64], u: NDA
     observation been left out, instead of all of them divided by the residual degrees of freedom.
     The two agree when every observation weighs alike; they part when a few observations inform
     a direction alone (an active selector picks exactly those), whose residuals the fit shrinks
-    and the degrees-of-freedom form then takes for quiet ones. It is a little conservative for
-    Gaussian errors (the NEES of 28 identifiable combinations averaged 26 in ``tools.error_replay``).
+    and the degrees-of-freedom form then takes for quiet ones. For Gaussian errors of the stated
+    scale it is the Gauss-Newton covariance or a little wider (``test_map_estimator``).
 
     Parameters
     ----------
@@ -195,7 +195,8 @@ class MapSettings:
         ``'sandwich'``: the robust estimate's own covariance, with the residuals' spread measured
         at the solution (:func:`sandwich_covariance`; Gauss-Newton while too few observations);
         ``'sandwich_hc3'``: the same with the spread of leverage-corrected residuals (right also
-        when a few selected observations inform a direction alone); ``'gauss_newton'``: the inverse Gauss-Newton information, inliers as Gaussian evidence
+        when a few selected observations inform a direction alone); ``'gauss_newton'``: the
+        inverse Gauss-Newton information, inliers as Gaussian evidence
         of the stated covariance, outliers at their robust weight.
     """
 

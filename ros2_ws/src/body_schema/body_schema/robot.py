@@ -146,8 +146,9 @@ class ArmModel:
     noise_covariance : str
         How the estimator should turn this camera's errors into its posterior covariance
         (``noise_model: {covariance: ...}``, one of
-        :data:`body_schema.map_estimator.COVARIANCES`), where the law's shape is known to be
-        wrong; empty: the estimator's default.
+        :data:`body_schema.map_estimator.COVARIANCES`), where the errors need another than the
+        estimator's default (heavy tails and an active selector: ``sandwich_hc3``); empty: the
+        estimator's default.
     """
 
     name: str

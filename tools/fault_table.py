@@ -219,12 +219,16 @@ def run_kill_recorder_process(workdir: Path, domain_id: int | None = None) -> Fa
             with InProcessGraph(ctx, ex, _params(10)) as g:
                 g.spin_until(lambda: g.estimator.pub_status.get_subscription_count() >= 2, DEADLINE, 'the recorder process')
                 g.spin_until(lambda: _accepted_iterations(g.selector) >= 2, DEADLINE, 'two accepted iterations')
-                # Let the recorder take the second verdict (reliable; it is another process).
-                deadline = time.monotonic() + 0.5
-                while time.monotonic() < deadline:
-                    g.spin_once()
+                # The graph is not spun now, so nothing new is published; the recorder (another
+                # process) takes the verdicts already sent and flushes each one as it comes. Kill
+                # it once its bag holds them (or after 5 s): what it had written must survive. A
+                # fixed pause instead let a third verdict, published just before the kill, count
+                # as lost (one fresh-clone run in three).
                 accepted_before = g.estimator.estimator.counters['updates']
                 fault_at = len(g.selector.planner.history)
+                deadline = time.monotonic() + 5.0
+                while _accepted_in_bag(bag)[0] < accepted_before and time.monotonic() < deadline:
+                    time.sleep(0.05)      # nothing to spin: the recorder is another process
                 proc.send_signal(signal.SIGKILL)
                 proc.wait(10)
                 g.spin_until(lambda: g.selector.done, DEADLINE, 'the run to finish without its recorder')

@@ -33,7 +33,6 @@ from typing import Any, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.stats import chi2
 
 from body_schema import sampling
 from body_schema.identifiability import average_nees_band, subspace_nees
@@ -116,7 +115,6 @@ def replay(model: ArmModel, pool: Sequence[Observation], settings: EstimatorSett
            n_obs: int) -> dict[str, NDArray[np.float64]]:
     """Per trial: NEES, changes, outliers, flange error [mm] of the final estimate; the NEES's band and dof."""
     rows: dict[str, list[float]] = {k: [] for k in ('nees', 'changes', 'outliers', 'position_mm')}
-    band = None
     for t in range(trials):
         idx = np.random.default_rng(100 + t).choice(len(pool), n_obs, replace=False)
         est = OnlineEstimator(model, sampling.perturb_dh(model.dh, t + 1), sampling.initial_covariance(model.n_joints),
@@ -126,14 +124,14 @@ def replay(model: ArmModel, pool: Sequence[Observation], settings: EstimatorSett
         zero = (np.zeros(6), np.zeros(6)) if est.extrinsics is not None else None
         true_x, _ = true_state(est, model.dh, zero)
         basis = est.identifiability.identifiable_basis
-        band = chi2.ppf([0.025, 0.975], basis.shape[1])
         rows['nees'].append(subspace_nees(est.x - true_x, est.P, basis))
         rows['changes'].append(est.counters['changes'])
         rows['outliers'].append(est.counters['outliers'])
         rows['position_mm'].append(
             PoseErrorEvaluator(model.base, true_x[:model.n_params].reshape(model.dh.shape),
                                model.calibration_box)(est.dh).position_mm)
-    return {**{k: np.array(v) for k, v in rows.items()}, 'band': np.asarray(band), 'dof': int(basis.shape[1])}
+    dof = int(basis.shape[1])
+    return {**{k: np.array(v) for k, v in rows.items()}, 'band': np.asarray(average_nees_band([dof])), 'dof': dof}
 
 
 def main(argv: Sequence[str] | None = None) -> int:

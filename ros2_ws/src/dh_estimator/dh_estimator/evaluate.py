@@ -41,11 +41,10 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.stats import chi2
 
 from body_schema import load_robot, sampling
 from body_schema.extrinsics import absorbed_parameters, align_truth, perturb_pose, pose_delta
-from body_schema.identifiability import subspace_nees
+from body_schema.identifiability import average_nees_band, subspace_nees
 from body_schema.kinematics import equivalent_table
 from body_schema.map_estimator import COVARIANCES, LOSSES
 from body_schema.metrics import PoseErrorEvaluator, expected_pose_errors
@@ -161,8 +160,7 @@ class Evaluation:
         """The 95 % chi-square band of :attr:`nees_identifiable` (None for an old evaluation)."""
         if not self.identifiable:
             return None
-        lo, hi = chi2.ppf([0.025, 0.975], self.identifiable)
-        return float(lo), float(hi)
+        return average_nees_band([self.identifiable])
 
     @property
     def max_online_offline_difference(self) -> float:

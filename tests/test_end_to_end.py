@@ -115,10 +115,6 @@ def test_final_estimate_beats_the_initial_guess_and_replay_reproduces_it(run) ->
     assert abs(last.position_mm - last.online_position_mm) < 1e-6
 
 
-# One rerun: when the first image is stamped before the estimator's first joint state (20 ms, one
-# fresh-clone run in five), the online EKF skips it and the bag's re-run does not, and the run
-# check rightly calls the run unhealthy (README "Tests": not fixed yet).
-@pytest.mark.flaky(reruns=1)
 def test_the_paper_ekf_and_a_body_that_changes_mid_run(tmp_path: Path) -> None:
     """--estimator ekf --body-change: the EKF runs, the sim changes the real robot at the 4th
     command, the bag holds both true tables and the evaluation scores against the changed one.

@@ -14,7 +14,9 @@ with status 0. Topics and QoS: the contract
 Subscriptions
 -------------
 /joint_states : sensor_msgs/JointState (best effort: matches any publisher)
-/body_schema/estimate, /body_schema/covariance : std_msgs/Float64MultiArray (transient local)
+/body_schema/estimate, /body_schema/covariance : std_msgs/Float64MultiArray (transient local); the
+    informed strategies select on them, and with ``wait_for_estimator`` every strategy waits for
+    the first estimate, which the estimator sends once it hears the arm
 /camera/<eye>/pose : geometry_msgs/PoseStamped (transient local)
 /markers : geometry_msgs/PoseArray
 /diagnostics : diagnostic_msgs/DiagnosticArray, the detector's per-frame verdicts (statuses named
@@ -32,7 +34,7 @@ Publications
 Parameters
 ----------
 Declared from the settings dataclasses of :mod:`active_selector.node_settings` (one default, one
-description and one range each): robot, eye, progress_file, wait_for_recorder, resume,
+description and one range each): robot, eye, progress_file, wait_for_recorder, wait_for_estimator, resume,
 wait_report_period (SelectorNodeSettings); strategy ('random' | 'al' | 'ucsal' | 'ccsal'), seed, gamma, delta,
 optimizer, algorithm, max_evals, n_candidates, refine_starts, refine_evals, local_algorithm,
 repeat_tolerance (StrategySettings); penalty_a, penalty_b, occlusion_length_scale,
@@ -202,9 +204,10 @@ class SelectorNode(Node):
         missing = []
         if self.q is None:
             missing.append('/joint_states')
-        if self.planner.strategy.value != 'random':
-            if self.dh is None:
-                missing.append('/body_schema/estimate')
+        informed = self.planner.strategy.value != 'random'
+        if self.dh is None and (informed or self.settings.wait_for_estimator):
+            missing.append('/body_schema/estimate')
+        if informed:
             if self.P is None:
                 missing.append('/body_schema/covariance')
             if self.camera_pose is None:

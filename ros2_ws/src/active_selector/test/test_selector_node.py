@@ -106,6 +106,24 @@ def test_waits_for_estimate_and_says_why(ros, capfd):
     assert 'waiting for /body_schema/estimate, /body_schema/covariance before selecting' in err
 
 
+def test_random_waits_for_the_estimator_when_asked(ros):
+    """wait_for_estimator: even the random strategy, which selects without an estimate, commands
+    only once the estimator has published one (it does so on its first joint state)."""
+    from std_msgs.msg import Float64MultiArray
+
+    from calibration_interfaces.messages import table_to_msg
+
+    probe = Probe(ros, strategy='random', seed=3, wait_for_estimator=True)
+    q = np.mean(ARM.calibration_box, axis=1)
+    ros.spin_until(lambda: probe.joints(q) or probe.node.q is not None, 10.0, 'joints')
+    ros.spin_for(0.4)
+    assert probe.node.waiting_for == ['/body_schema/estimate'] and probe.commands == []
+    estimate = ros.node('estimator').create_publisher(Float64MultiArray, '/body_schema/estimate',
+                                                      qos_profile('/body_schema/estimate'))
+    estimate.publish(table_to_msg(ARM.dh))
+    probe.target()                                          # the first command follows
+
+
 def test_an_empty_frame_after_settling_fails_the_iteration(ros, tmp_path):
     probe = Probe(ros, strategy='random', iterations=2, seed=3, progress_file=str(tmp_path / 'p.jsonl'))
     target = probe.target()

@@ -21,7 +21,10 @@ Subscriptions
 Publications
 ------------
 /body_schema/estimate : std_msgs/Float64MultiArray (reliable, transient local)
-    7 x 4 DH table (a, d, alpha, offset), after every attempt.
+    7 x 4 DH table (a, d, alpha, offset), after every attempt. The initial one (with the covariance
+    and the description) only once the first joint state has arrived: it says the estimator can
+    pair observations, and a selector waits for it before its first command (an attempt stamped
+    before the estimator's first joint state would be dropped online but used by the bag's re-run).
 /body_schema/covariance : std_msgs/Float64MultiArray (reliable, transient local)
     28 x 28 covariance, row-major, same order; with ``camera_prior`` / ``marker_prior`` the
     camera's and the marker's 6-D corrections follow the table (34 or 40 square for the iCub; the
@@ -128,7 +131,7 @@ class EstimatorNode(Node):
         self.create_subscription(PoseWithCovarianceStamped, '/hand_pose', self.on_hand_pose, qos_profile('/hand_pose'))
         self.create_subscription(JointTrajectory, '/arm/command', self.on_command, qos_profile(RELIABLE))
         self.create_service(Trigger, '~/export', self.on_export)
-        self.publish_estimate()
+        self._announced = False                     # the initial estimate waits for the first joint state
         extras = self.estimator.extrinsics
         self.get_logger().info(f'estimating {self.model.n_params} DH parameters of {self.model.name} '
                                + (f'with the {" and ".join(extras.blocks)} pose ({extras.n} more) '
@@ -169,6 +172,8 @@ class EstimatorNode(Node):
 
     def on_joint_state(self, msg: JointState) -> None:
         self._feed('/joint_states', msg)
+        if not self._announced and self.pairer.buffer.latest is not None:
+            self.publish_estimate()
 
     def on_command(self, msg: JointTrajectory) -> None:
         self._feed('/arm/command', msg)
@@ -204,6 +209,7 @@ class EstimatorNode(Node):
                                                  values=[KeyValue(key=k, value=v) for k, v in kv.items()]))
 
     def publish_estimate(self) -> None:
+        self._announced = True
         self.pub_estimate.publish(table_to_msg(self.estimator.dh))
         self.pub_cov.publish(covariance_to_msg(self.estimator.P))
         self.pub_description.publish(String(data=description_urdf(

@@ -80,6 +80,11 @@ class Identifiability:
         Why, one per dependency, where the geometry explains it (parallel consecutive axes).
     n_dh : int
         How many of the parameters are the DH table's (the rest are extrinsic corrections).
+    approximate : tuple of bool
+        One per dependency: True where only the exact parallelism of joint axes makes it one. A
+        real arm's axes are parallel only to a fraction of a degree, so these combinations are
+        weakly observable rather than exact gauge freedoms (what the camera or the marker
+        absorbs is exact for any table).
     """
 
     names: tuple[str, ...]
@@ -90,6 +95,7 @@ class Identifiability:
     dependencies: tuple[NDArray[np.float64], ...]
     reasons: tuple[str, ...]
     n_dh: int = -1
+    approximate: tuple[bool, ...] = ()
 
     @property
     def n_unidentifiable(self) -> int:
@@ -104,6 +110,22 @@ class Identifiability:
         deps = np.array(self.dependencies).T.copy()
         deps[self.n_dh:] = 0.0
         return scipy.linalg.orth(deps)
+
+    def held_groups(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """:attr:`held_directions` split in two orthonormal sets, shapes (n, k_exact), (n, k_approx).
+
+        The second spans the DH parts of the :attr:`approximate` dependencies (parallel axes),
+        the first the rest, orthogonal to the second; together they span what
+        :attr:`held_directions` spans.
+        """
+        n = len(self.names)
+        flags = self.approximate or (False,) * len(self.dependencies)
+        deps = [np.where(np.arange(n) < (self.n_dh if self.n_dh >= 0 else n), v, 0.0) for v in self.dependencies]
+        approx = [v for v, a in zip(deps, flags) if a]
+        va = scipy.linalg.orth(np.array(approx).T) if approx else np.zeros((n, 0))
+        exact = np.array([v - va @ (va.T @ v) for v, a in zip(deps, flags) if not a]).T
+        ve = scipy.linalg.orth(exact) if exact.size else np.zeros((n, 0))
+        return ve, va
 
     @property
     def identifiable_basis(self) -> NDArray[np.float64]:
@@ -165,6 +187,12 @@ def parallel_axis_groups(dh: ArrayLike, tol: float = 1e-6) -> list[list[int]]:
     if run:
         groups.append(run)
     return groups
+
+
+def _parallel_only(v: NDArray[np.float64], dh: NDArray[np.float64]) -> bool:
+    """True if ``v`` moves only the d of one run of parallel joint axes."""
+    idx = set(np.flatnonzero(np.abs(v) >= _COEF_TOL).tolist())
+    return any(idx <= {k * PARAMS_PER_LINK + 1 for k in group} for group in parallel_axis_groups(dh))
 
 
 def _reason(v: NDArray[np.float64], dh: NDArray[np.float64], joint_names: tuple[str, ...]) -> str:
@@ -243,9 +271,10 @@ def analyse_jacobian(J: ArrayLike, names: tuple[str, ...], dh: ArrayLike | None 
     table = None if dh is None else np.asarray(dh, dtype=float)
     reasons = tuple(_reason(v, table, joint_names) if table is not None
                     else 'the pose Jacobian columns are linearly dependent over the box' for v in deps)
+    approximate = tuple(table is not None and _parallel_only(v, table) for v in deps)
     sv = scipy.linalg.svdvals(J)
     return Identifiability(tuple(names), sv, rank, tuple(int(i) for i in base), null, tuple(deps), reasons,
-                           n - n_extra if n_extra else n)
+                           n - n_extra if n_extra else n, approximate)
 
 
 def analyse(model: ArmModel, n: int = 200, seed: int = 0, dh: ArrayLike | None = None,

@@ -36,8 +36,12 @@ model ``x_{k+1} = x_k + w_k``:
 Parameter combinations the measurements cannot separate (``fixed_directions``, from
 :func:`body_schema.identifiability.analyse`: e.g. the ``d`` of a UR's three parallel joints) are
 held at the initial guess by an explicit prior of standard deviation ``fixed_std`` along each
-direction, a residual block of its own (so a jump or a fold into the prior never loosens it):
-the estimate does not drift along them and its covariance says they were not estimated.
+direction (one for all, or one each), a residual block of its own (so a jump or a fold into the
+prior never loosens it): the estimate does not drift along them and its covariance says they
+were not estimated. :class:`dh_estimator.estimator.OnlineEstimator` pins what a camera or marker
+absorbs (exact for any table) and holds what only parallel axes hide by the guess's own spread:
+on a real arm those axes are a fraction of a degree apart, and a pin at a guess centimetres off
+biases every other parameter (``test_identifiability``).
 
 ``x`` is the flattened DH table, row-major ``(a_0, d_0, alpha_0, offset_0, a_1, ...)``, followed,
 when ``extrinsics`` estimates them (:class:`body_schema.extrinsics.Extrinsics`), by the 6-D
@@ -320,8 +324,9 @@ class MapEstimator:
         Joint limits [rad]; observations outside them are refused.
     fixed_directions : array_like, shape (4 L, k), optional
         Orthonormal directions the data cannot inform, held at ``x0`` (none by default).
-    fixed_std : float
-        Standard deviation of that prior along each direction [m or rad per unit direction].
+    fixed_std : float or array_like, shape (k,)
+        Standard deviation of that prior along each direction (one for all, or one each) [m or
+        rad per unit direction].
     extrinsics : Extrinsics, optional
         Camera / marker corrections estimated with the table (none by default: the hand pose is
         ``FK`` exactly as before).
@@ -340,7 +345,7 @@ class MapEstimator:
 
     def __init__(self, base: ArrayLike, x0: ArrayLike, P0: ArrayLike,  # noqa: N803
                  settings: MapSettings = MapSettings(), limits: ArrayLike | None = None,
-                 fixed_directions: ArrayLike | None = None, fixed_std: float = 1e-6,
+                 fixed_directions: ArrayLike | None = None, fixed_std: float | ArrayLike = 1e-6,
                  extrinsics: Extrinsics | None = None) -> None:
         self.base = np.asarray(base, dtype=float)
         self.extrinsics = extrinsics if extrinsics is not None and extrinsics.n else None
@@ -361,10 +366,12 @@ class MapEstimator:
         if v.ndim != 2 or v.shape[0] != self.n or not np.all(np.isfinite(v)) or \
                 not np.allclose(v.T @ v, np.eye(v.shape[1]), atol=1e-8):
             raise InvalidInputError(f'fixed_directions must be an orthonormal ({self.n}, k) matrix, got shape {v.shape}')
-        if not (np.isfinite(fixed_std) and fixed_std > 0):
-            raise InvalidInputError(f'fixed_std must be finite and > 0, got {fixed_std}')
+        std = np.broadcast_to(np.asarray(fixed_std, dtype=float), (v.shape[1],)) if np.ndim(fixed_std) == 0 \
+            else np.asarray(fixed_std, dtype=float)
+        if std.shape != (v.shape[1],) or not np.all(np.isfinite(std) & (std > 0)):
+            raise InvalidInputError(f'fixed_std must be one or {v.shape[1]} finite values > 0, got {fixed_std!r}')
         # Rows of the fixing prior: V^T (x - x0) / std ~ N(0, I).
-        self._fix_rows = v.T / fixed_std
+        self._fix_rows = v.T / std[:, None]
         self._fix_anchor = x0.copy()
         self.fixed_directions = v
         self.settings = settings

@@ -120,6 +120,12 @@ class EstimatorSettings:
                                 '"<m> <deg>" (e.g. "0.02 2" for a tape-measured tripod); empty or 0: known')
     marker_prior: str = setting('', 'MAP: estimate the marker offset on the flange, prior one-sigma per axis '
                                 '"<m> <deg>" (e.g. "0.005 5"); empty or 0: known')
+    parallel_std: float = setting(-1.0, 'MAP: standard deviation [m] of the prior holding the combinations only '
+                                  "exactly parallel joint axes hide (a UR's d along joints 2-4); negative: the "
+                                  "initial covariance's own spread along each (a real arm's axes are parallel "
+                                  'to a fraction of a degree, so pinning them at a wrong guess biases the rest); 0: '
+                                  'pinned like the exact ones',
+                                  (-1.0, 1.0))
 
     @property
     def extrinsic_priors(self) -> tuple[tuple[float, float] | None, tuple[float, float] | None]:
@@ -198,9 +204,14 @@ class OnlineEstimator:
         # the export and the report name them.
         self.identifiability = identifiability.analyse(model, extrinsics=self.extrinsics)
         if settings.estimator == 'map':
+            exact, parallel = self.identifiability.held_groups()
+            # What the camera / marker absorb is exact for any table: pinned. What only parallel
+            # axes hide is not, on a real arm: held at the guess with the guess's own uncertainty.
+            spread = np.sqrt(np.einsum('ik,ij,jk->k', parallel, P0, parallel)) if settings.parallel_std < 0 \
+                else np.full(parallel.shape[1], max(settings.parallel_std, FIXED_STD))
             self.map = MapEstimator(model.base, x0, P0, settings.map_settings(model.noise_covariance),
-                                    limits=model.limits,
-                                    fixed_directions=self.identifiability.held_directions, fixed_std=FIXED_STD,
+                                    limits=model.limits, fixed_directions=np.hstack([exact, parallel]),
+                                    fixed_std=np.concatenate([np.full(exact.shape[1], FIXED_STD), spread]),
                                     extrinsics=self.extrinsics)
         else:
             per_link = np.array([settings.q_length, settings.q_length, settings.q_angle, settings.q_angle])
@@ -370,6 +381,17 @@ class OnlineEstimator:
                         'the parent frame; sigma per component of it'}
         return out
 
+    def _held_text(self) -> str:
+        """How the MAP estimator holds the unidentifiable directions, for the export."""
+        exact, parallel = self.identifiability.held_groups()
+        std = np.abs(1.0 / np.linalg.norm(self.map._fix_rows, axis=1))
+        text = (f'at the initial guess by a prior of standard deviation {FIXED_STD:g} along each exact '
+                f'direction ({exact.shape[1]})')
+        if parallel.shape[1]:
+            text += (f'; the {parallel.shape[1]} only parallel axes hide with standard deviation '
+                     + ', '.join(f'{v:.3g}' for v in std[exact.shape[1]:]) + ' m (MAP)')
+        return text
+
     def export(self, directory: str | Path, stem: str = 'calibrated') -> tuple[Path, Path]:
         """Write ``<stem>_dh.yaml`` (table with one-sigma, :mod:`calibration_interfaces.dh_file`) and
         ``<stem>.urdf``; return both paths."""
@@ -379,8 +401,8 @@ class OnlineEstimator:
         sigma = sigma_all[:n_dh].reshape(self.model.dh.shape)
         ident = self.identifiability.as_dict()
         if self.identifiability.n_unidentifiable:
-            ident['held'] = (f'at the initial guess by a prior of standard deviation {FIXED_STD:g} along each '
-                             f'direction (MAP)' if self.map is not None else 'not held (EKF): the filter may drift along them')
+            ident['held'] = (self._held_text() if self.map is not None
+                             else 'not held (EKF): the filter may drift along them')
             if self.extrinsics is not None:
                 ident['held'] += ("; what the camera / marker absorb at the description's values")
         extra: dict[str, object] = {'updates': self.counters, 'identifiability': ident}

@@ -200,6 +200,22 @@ def test_camera_and_marker_priors_add_their_states_and_hold_what_they_absorb():
     np.testing.assert_allclose(cam, ur.camera_pose('left'))
 
 
+@pytest.mark.parametrize('parallel_std, expected', [(-1.0, None), (0.0, 1e-6), (0.003, 0.003)])
+def test_parallel_axis_combinations_are_held_by_the_guess_uncertainty_and_the_absorbed_ones_pinned(
+        tmp_path, parallel_std, expected):
+    ur, est = _ur_estimator(camera_prior='0.02 2', marker_prior='0.005 5', parallel_std=parallel_std)
+    exact, parallel = est.identifiability.held_groups()
+    std = 1.0 / np.linalg.norm(est.map._fix_rows, axis=1)
+    np.testing.assert_allclose(std[:6], 1e-6)                          # what camera and marker absorb
+    p24 = parallel[:24]                                                # DH components only
+    spread = np.sqrt(np.diag(p24.T @ sampling.initial_covariance(6) @ p24))
+    np.testing.assert_allclose(std[6:], spread if expected is None else expected)
+    if expected is None:
+        assert np.all(std[6:] > 0.005)                                 # the paper-wide guess: centimetres
+    held = yaml.safe_load(est.export(tmp_path)[0].read_text())['identifiability']['held']
+    assert 'the 2 only parallel axes hide with standard deviation' in held
+
+
 def test_export_writes_the_camera_pose_with_sigma_and_a_static_transform(tmp_path):
     ur, est = _ur_estimator(camera_prior='0.02 2', marker_prior='0.005 5')
     est.map.x[24:30] = [0.01, -0.02, 0.005, 0.0, 0.0, np.radians(1.0)]

@@ -462,13 +462,16 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument('--gate-warmup', type=int)
     ap.add_argument('--camera-prior', help="MAP: the camera pose estimated with the table, prior '<m> <deg>'")
     ap.add_argument('--marker-prior', help="MAP: the marker offset estimated with the table, prior '<m> <deg>'")
+    ap.add_argument('--parallel-std', type=float,
+                    help="MAP: prior [m] holding what only parallel axes hide (negative: the initial guess's "
+                         'spread; 0: pinned, as before)')
     ap.add_argument('--no-plots', action='store_true', help='write the CSV only')
     return ap
 
 
 _OVERRIDES = ('robot', 'initial_seed', 'noise_model', 'cn_sigma_pos', 'cn_sigma_rot_deg', 'estimator', 'loss',
               'covariance', 'change_probability', 'iterations', 'gate_probability', 'gate_warmup', 'camera_prior',
-              'marker_prior')
+              'marker_prior', 'parallel_std')
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -337,6 +337,10 @@ class MapEstimator:
         Current MAP estimate.
     P : ndarray, shape (4 L, 4 L)
         Its covariance (inverse Gauss-Newton information at ``x``).
+    fixed_directions : ndarray, shape (n, k)
+        The held directions, as given.
+    fixed_std : ndarray, shape (k,)
+        The prior's standard deviation along each.
     last : MapUpdate or None
         Report of the last update.
     n_updates, n_changes, n_marginalised : int
@@ -374,6 +378,7 @@ class MapEstimator:
         self._fix_rows = v.T / std[:, None]
         self._fix_anchor = x0.copy()
         self.fixed_directions = v
+        self.fixed_std = std.copy()
         self.settings = settings
         self.limits = None if limits is None else np.asarray(limits, dtype=float)
         per_link = np.array([settings.q_length, settings.q_length, settings.q_angle, settings.q_angle])

@@ -211,3 +211,6 @@ def test_map_refuses_directions_that_are_not_orthonormal():
         MapEstimator(UR5E.base, x0, np.eye(24) * 1e-4, fixed_directions=np.eye(24)[:, :1], fixed_std=0.0)
     with pytest.raises(InvalidInputError, match=r'fixed_std must be one or 2 finite values > 0'):
         MapEstimator(UR5E.base, x0, np.eye(24) * 1e-4, fixed_directions=np.eye(24)[:, :2], fixed_std=[1e-6])
+    # One value is one per direction; the estimator keeps what it was given (the export reads it).
+    one = MapEstimator(UR5E.base, x0, np.eye(24) * 1e-4, fixed_directions=np.eye(24)[:, :2], fixed_std=3e-3)
+    np.testing.assert_array_equal(one.fixed_std, [3e-3, 3e-3])

@@ -384,7 +384,7 @@ class OnlineEstimator:
     def _held_text(self) -> str:
         """How the MAP estimator holds the unidentifiable directions, for the export."""
         exact, parallel = self.identifiability.held_groups()
-        std = np.abs(1.0 / np.linalg.norm(self.map._fix_rows, axis=1))
+        std = self.map.fixed_std
         text = (f'at the initial guess by a prior of standard deviation {FIXED_STD:g} along each exact '
                 f'direction ({exact.shape[1]})')
         if parallel.shape[1]:

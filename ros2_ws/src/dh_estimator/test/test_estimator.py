@@ -205,7 +205,7 @@ def test_parallel_axis_combinations_are_held_by_the_guess_uncertainty_and_the_ab
         tmp_path, parallel_std, expected):
     ur, est = _ur_estimator(camera_prior='0.02 2', marker_prior='0.005 5', parallel_std=parallel_std)
     exact, parallel = est.identifiability.held_groups()
-    std = 1.0 / np.linalg.norm(est.map._fix_rows, axis=1)
+    std = est.map.fixed_std
     np.testing.assert_allclose(std[:6], 1e-6)                          # what camera and marker absorb
     p24 = parallel[:24]                                                # DH components only
     spread = np.sqrt(np.diag(p24.T @ sampling.initial_covariance(6) @ p24))

@@ -56,6 +56,11 @@ class PlannerSettings:
                              "'v_optimal' (hand-pose variance over the calibration box)", choices=CRITERIA)
     box_samples: int = setting(128, 'Configurations (Sobol, fixed) v-optimality averages over; a power of two',
                                (1, 65536))
+    q_length: float = setting(0.0, "The estimator's process-noise variance per update for a, d [m^2]: the cost is "
+                              'computed on the covariance the next update starts from, P + Q (the paper\'s '
+                              'P_{k+1|k}); set it to the estimator\'s q_length', (0.0, 1.0))
+    q_angle: float = setting(0.0, "The estimator's process-noise variance per update for alpha, offset [rad^2] "
+                             '(as q_length)', (0.0, 1.0))
 
     def __post_init__(self) -> None:
         if self.occlusion_prior not in OCCLUSION_PRIORS:
@@ -63,6 +68,8 @@ class PlannerSettings:
         n = self.box_samples
         if n < 1 or n & (n - 1):
             raise ValueError(f'box_samples must be a power of two >= 1 (Sobol balance), got {n}')
+        if not (self.q_length >= 0 and self.q_angle >= 0):
+            raise ValueError(f'process noise must be >= 0, got q_length {self.q_length}, q_angle {self.q_angle}')
 
 
 @dataclass(frozen=True)
@@ -144,8 +151,13 @@ class Planner:
         where it is not seen, and the flat prior takes over until the estimate improves).
         """
         s = self.settings
+        P = np.array(P, dtype=float)  # noqa: N806
+        if s.q_length or s.q_angle:
+            # The next update starts from P + Q (the estimator's predict step); the table comes first.
+            q = np.tile([s.q_length, s.q_length, s.q_angle, s.q_angle], self.model.n_joints)
+            P[np.arange(q.size), np.arange(q.size)] += q
         cost = AcquisitionCost(self.model.base, np.asarray(dh, dtype=float).reshape(self.model.dh.shape),
-                               np.asarray(P, dtype=float), self.noise, np.asarray(camera_pose, dtype=float),
+                               P, self.noise, np.asarray(camera_pose, dtype=float),
                                self.model.markers, occlusion=self.occlusion, visibility=self.visibility,
                                penalty_a=s.penalty_a, penalty_b=s.penalty_b, occlusion_mode=s.occlusion_mode,
                                criterion=s.criterion, box_configs=self.box_configs, extrinsics=self.extrinsics)

@@ -88,3 +88,17 @@ def test_geometric_prior_loses_weight_when_its_predictions_fail():
     for theta in likely:
         right.record(theta, theta, 'accepted', True, 0.0)
     assert right.cost(ARM.dh, P, ARM.camera_pose()).visibility_weight > 0.8
+
+
+def test_the_cost_is_computed_on_the_covariance_the_next_update_starts_from():
+    """The paper's C0 is the expected trace after the next update, which starts from P + Q."""
+    P = sampling.initial_covariance(7) * 1e-3
+    plain = Planner(ARM, PoseDependentNoise(), PlannerSettings(occlusion_prior='flat')).cost(ARM.dh, P, ARM.camera_pose())
+    np.testing.assert_array_equal(plain.P, P)
+    pl = Planner(ARM, PoseDependentNoise(), PlannerSettings(occlusion_prior='flat', criterion='a_optimal',
+                                                            q_length=1e-8, q_angle=4e-6))
+    cost = pl.cost(ARM.dh, P, ARM.camera_pose())
+    np.testing.assert_allclose(cost.P - P, np.diag(np.tile([1e-8, 1e-8, 4e-6, 4e-6], 7)), atol=1e-20)
+    assert cost.uncertainty == pytest.approx(np.trace(P) + 7 * (2e-8 + 8e-6))
+    with pytest.raises(ValueError, match='q_angle -1'):
+        PlannerSettings(q_angle=-1.0)

@@ -76,11 +76,13 @@ from typing import Any, Iterator, Mapping, Sequence, TextIO
 
 import numpy as np
 
-from .graph import InProcessGraph, default_parameters, merge_parameters, recorder_available, ros_session
+from .graph import NODES, InProcessGraph, default_parameters, merge_parameters, recorder_available, ros_session
+from .systems import SYSTEMS
 
 __all__ = ['METHODS', 'SYSTEMS', 'COLUMNS', 'Method', 'Seeds', 'RunSpec', 'GraphSettings', 'ExperimentConfig',
            'RunError', 'RunResult', 'ExperimentOutcome', 'derive_seeds', 'plan_runs', 'node_parameters',
            'run_settings', 'settings_hash', 'settings_difference', 'is_finished', 'run_graph', 'execute_run',
+           'parse_override',
            'write_rows', 'read_rows', 'combine_runs', 'domain_ids', 'run_experiment', 'main']
 
 
@@ -96,17 +98,6 @@ class Method:
 METHODS: dict[str, Method] = {m.name: m for m in (
     Method('R', 'random'), Method('AL', 'al'), Method('UCSAL', 'ucsal'), Method('CCSAL', 'ccsal'),
     Method('AL-CN', 'al', True), Method('UCSAL-CN', 'ucsal', True), Method('CCSAL-CN', 'ccsal', True))}
-
-#: Compared systems: per-node parameter overrides of the nodes' parameter files.
-SYSTEMS: dict[str, dict[str, dict[str, Any]]] = {
-    'ours': {},
-    # The paper: EKF (one linearisation), cost C0 / eta with a-optimality and the learned-only (flat prior)
-    # occlusion model, DIRECT-L with 1000 evaluations, repeats allowed.
-    'paper': {'estimator': {'estimator': 'ekf', 'iterations': 1},
-              'selector': {'occlusion_mode': 'paper', 'criterion': 'a_optimal', 'occlusion_prior': 'flat',
-                           'optimizer': 'direct', 'algorithm': 'DIRECT_L', 'max_evals': 1000,
-                           'repeat_tolerance': 0.0}},
-}
 
 #: Columns of every run's CSV and of the combined ``metrics.csv``.
 COLUMNS: tuple[str, ...] = (
@@ -267,8 +258,12 @@ class ExperimentConfig:
     address: str | None = None
     shared: bool = False
     force_new: bool = False
+    overrides: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
+        bad_nodes = sorted(set(self.overrides) - set(NODES))
+        if bad_nodes:
+            raise ValueError(f'overrides for unknown nodes {bad_nodes}; expected any of {list(NODES)}')
         bad = [m for m in self.methods if m not in METHODS]
         if bad:
             raise ValueError(f'unknown methods {bad}; expected any of {list(METHODS)}')
@@ -296,12 +291,12 @@ def plan_runs(config: ExperimentConfig) -> list[RunSpec]:
             for r in range(config.repetitions) for m in config.methods]
 
 
-def node_parameters(spec: RunSpec, settings: GraphSettings = GraphSettings(),
-                    system: str = 'ours') -> dict[str, dict[str, Any]]:
+def node_parameters(spec: RunSpec, settings: GraphSettings = GraphSettings(), system: str = 'ours',
+                    overrides: Mapping[str, Mapping[str, Any]] | None = None) -> dict[str, dict[str, Any]]:
     """Parameter overrides of each node for ``spec`` on ``system`` (pure; the graph applies them).
 
-    Layers, later winning: the nodes' parameter files, :data:`SYSTEMS` ``[system]``, the run's
-    graph settings, seeds and method.
+    Layers, later winning: the nodes' parameter files, :data:`SYSTEMS` ``[system]``, ``overrides``
+    (the CLI's ``--set``, an ablation step), the run's graph settings, seeds and method.
 
     Returns
     -------
@@ -311,7 +306,7 @@ def node_parameters(spec: RunSpec, settings: GraphSettings = GraphSettings(),
     method = METHODS[spec.method]
     seeds = spec.seeds
     noise = {'noise_model': 'constant'} if method.constant_noise else {}
-    return merge_parameters(default_parameters(), SYSTEMS[system], {
+    return merge_parameters(default_parameters(), SYSTEMS[system], overrides or {}, {
         'sim': {'perturb_seed': seeds.robot, 'image_rate': settings.image_rate,
                 'physics_step': settings.physics_step, 'max_joint_speed_deg': settings.max_joint_speed_deg,
                 'image_width': settings.image_width, 'image_height': settings.image_height},
@@ -328,12 +323,15 @@ def run_settings(config: ExperimentConfig, method: str) -> dict[str, Any]:
     per-repetition seeds (which follow from ``seed_base``), flattened to ``node.parameter`` keys.
 
     The repetition count, the method list, ``jobs``, recording and where the runs execute are
-    not in it: they change which runs exist or how fast, not what a run computes.
+    not in it: they change which runs exist or how fast, not what a run computes. Nor is the
+    system's name: its parameters are, so a system and the same parameters reached another way
+    (an ablation step, ``--set``) share finished runs.
     """
-    params = node_parameters(RunSpec(method, 0, config.seed_base, config.iterations), config.graph, config.system)
+    params = node_parameters(RunSpec(method, 0, config.seed_base, config.iterations), config.graph, config.system,
+                             config.overrides)
     for node, name in _SEED_PARAMETERS:
         params[node].pop(name)
-    flat: dict[str, Any] = {'system': config.system, 'seed_base': config.seed_base,
+    flat: dict[str, Any] = {'seed_base': config.seed_base,
                             'iterations': config.iterations, 'seeding': 'SeedSequence.spawn(3)'}
     for node, values in sorted(params.items()):
         flat.update({f'{node}.{k}': v for k, v in sorted(values.items())})
@@ -357,7 +355,8 @@ def settings_difference(old: Mapping[str, Any], new: Mapping[str, Any]) -> list[
 # One run: the graph in this process
 
 def run_graph(spec: RunSpec, domain_id: int, settings: GraphSettings = GraphSettings(),
-              record_path: Path | None = None, system: str = 'ours') -> list[dict[str, Any]]:
+              record_path: Path | None = None, system: str = 'ours',
+              overrides: Mapping[str, Mapping[str, Any]] | None = None) -> list[dict[str, Any]]:
     """Run ``spec`` on a fresh in-process graph and return its rows (iteration 0 = initial guess).
 
     Parameters
@@ -370,6 +369,8 @@ def run_graph(spec: RunSpec, domain_id: int, settings: GraphSettings = GraphSett
         Record the non-image topics to this MCAP file.
     system : str
         A key of :data:`SYSTEMS`.
+    overrides : mapping, optional
+        Per-node parameters over the system's (:func:`node_parameters`).
 
     Raises
     ------
@@ -384,7 +385,7 @@ def run_graph(spec: RunSpec, domain_id: int, settings: GraphSettings = GraphSett
     rows: list[dict[str, Any]] = []
     with ros_session(domain_id, qos_events=False) as (ctx, executor):
         try:
-            graph = InProcessGraph(ctx, executor, node_parameters(spec, settings, system), record_path,
+            graph = InProcessGraph(ctx, executor, node_parameters(spec, settings, system, overrides), record_path,
                                    time_callbacks=True)
         except RuntimeError as exc:     # the recorder asked for but missing
             raise RunError(f'{exc}; use --no-record') from exc
@@ -505,7 +506,8 @@ def _node_id() -> str:
 
 
 def execute_run(spec: RunSpec, domain_id: int, settings: GraphSettings, system: str, record: bool,
-                shared_root: str | None = None) -> RunResult:
+                shared_root: str | None = None,
+                overrides: Mapping[str, Mapping[str, Any]] | None = None) -> RunResult:
     """A run's task body: run ``spec`` with its output captured; never raises for a failed run.
 
     With ``shared_root`` the log and MCAP go to ``spec.path(shared_root, ...)`` directly;
@@ -525,7 +527,7 @@ def execute_run(spec: RunSpec, domain_id: int, settings: GraphSettings, system: 
                             f'host {host}, Ray node {node_id or "-"}\n')
         with _output_to(log_path):
             try:
-                rows = run_graph(spec, domain_id, settings, mcap_path if record else None, system)
+                rows = run_graph(spec, domain_id, settings, mcap_path if record else None, system, overrides)
             except Exception as exc:  # noqa: BLE001 (a failed run must not stop the others; the log keeps why)
                 traceback.print_exc()
                 error = f'{type(exc).__name__}: {exc}'
@@ -652,7 +654,7 @@ def _write_config(root: Path, config: ExperimentConfig, settings: Mapping[str, M
     recorded = json.loads(path.read_text()).get('settings', {}) if path.exists() else {}
     recorded.update(settings)
     doc = {**asdict(config), 'output': str(root), 'methods': list(config.methods),
-           'system_overrides': SYSTEMS[config.system],
+           'system_overrides': merge_parameters(SYSTEMS[config.system], config.overrides),
            'seeds': [{'repetition': r, 'seed': config.seed_base + r, **asdict(derive_seeds(config.seed_base + r))}
                      for r in range(config.repetitions)],
            'settings_hash': {m: settings_hash(s) for m, s in recorded.items()},
@@ -735,7 +737,7 @@ def _run_all(todo: list[RunSpec], config: ExperimentConfig, record: bool, hashes
             # At most `jobs` runs in flight, each with a domain id no other run in flight holds.
             while waiting and free:
                 spec, domain = waiting.popleft(), free.pop(0)
-                ref = task.remote(spec, domain, config.graph, config.system, record, shared)
+                ref = task.remote(spec, domain, config.graph, config.system, record, shared, config.overrides)
                 in_flight[ref] = (spec, domain)
             ready, _ = ray.wait(list(in_flight), num_returns=1, timeout=0.5)
             for ref in ready:
@@ -849,6 +851,9 @@ def build_parser() -> argparse.ArgumentParser:
                           'MCAPs there instead of returning them')
     p.add_argument('--force-new', action='store_true',
                    help='move earlier results in the output directory to previous-<time>/ and start over')
+    p.add_argument('--set', action='append', default=[], metavar='NODE.PARAMETER=VALUE',
+                   help="a node parameter over the system's, e.g. --set estimator.q_length=1e-6 (repeatable; "
+                        f'nodes: {", ".join(NODES)}; write 0.0 for a float); part of the settings a resume checks')
     p.add_argument('--seed-base', type=int, default=0,
                    help='repetition r has seed seed_base + r, from which its robot, guess and selector '
                         'seeds are spawned [0]')
@@ -866,6 +871,41 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def parse_override(text: str) -> tuple[str, str, Any]:
+    """``'node.parameter=value'`` -> ``(node, parameter, value)``.
+
+    The value is read as a ROS parameter is typed: ``true``/``false`` a bool, a literal without a
+    decimal point or exponent an int, one with either a float (write ``0.0``, not ``0``, for a
+    float parameter), ``[...]`` a YAML list, anything else a string.
+
+    Raises
+    ------
+    ValueError
+        Naming the text, if it is not ``node.parameter=value`` with a node of :data:`NODES`.
+    """
+    import yaml
+
+    key, sep, raw = text.partition('=')
+    node, dot, name = key.strip().partition('.')
+    if not (sep and dot and name):
+        raise ValueError(f'--set {text!r}: expected NODE.PARAMETER=VALUE, e.g. estimator.q_length=1e-6')
+    if node not in NODES:
+        raise ValueError(f'--set {text!r}: unknown node {node!r}; expected one of {list(NODES)}')
+    raw = raw.strip()
+    value: Any
+    if raw.lower() in ('true', 'false'):
+        value = raw.lower() == 'true'
+    else:
+        try:
+            value = int(raw)
+        except ValueError:
+            try:
+                value = float(raw)
+            except ValueError:
+                value = yaml.safe_load(raw) if raw.startswith('[') else raw
+    return node, name.strip(), value
+
+
 def config_from_args(argv: Sequence[str] | None = None) -> ExperimentConfig:
     """Parse the command line into an :class:`ExperimentConfig`."""
     a = build_parser().parse_args(argv)
@@ -874,10 +914,14 @@ def config_from_args(argv: Sequence[str] | None = None) -> ExperimentConfig:
     graph = replace(GraphSettings(), image_rate=a.image_rate, image_width=a.image_size[0],
                     image_height=a.image_size[1], max_joint_speed_deg=a.joint_speed)
     output = a.shared_output or a.output or _default_output(a.system, a.quick)
+    overrides: dict[str, dict[str, Any]] = {}
+    for text in a.set:
+        node, name, value = parse_override(text)
+        overrides.setdefault(node, {})[name] = value
     return ExperimentConfig(repetitions=reps, iterations=its, methods=tuple(dict.fromkeys(a.methods)),
                             system=a.system, jobs=a.jobs, output=output, seed_base=a.seed_base, record=a.record,
                             domain_base=a.domain_base, figures=a.figures, graph=graph, address=a.address,
-                            shared=a.shared_output is not None, force_new=a.force_new)
+                            shared=a.shared_output is not None, force_new=a.force_new, overrides=overrides)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -72,18 +72,27 @@ def test_node_parameters_follow_the_method(method: str) -> None:
 def test_the_paper_system_overrides_estimator_and_selector_only() -> None:
     spec = ex.RunSpec('UCSAL', 0, 3, 9)
     ours, paper = ex.node_parameters(spec, system='ours'), ex.node_parameters(spec, system='paper')
-    assert (paper['estimator']['estimator'], paper['estimator']['iterations']) == ('ekf', 1)
+    e = paper['estimator']
+    assert (e['estimator'], e['iterations'], e['gate_probability']) == ('ekf', 1, 0.0)     # no gate
+    assert e['q_length'] > 0 and e['q_angle'] > 0                                          # P + Q
     s = paper['selector']
     assert (s['occlusion_mode'], s['criterion'], s['optimizer'], s['algorithm'], s['max_evals']) == \
-        ('paper', 'a_optimal', 'direct', 'DIRECT_L', 1000)
+        ('paper', 'a_optimal', 'direct', 'DIRECT', 1000)
     assert (s['occlusion_prior'], s['repeat_tolerance']) == ('flat', 0.0)
+    assert (s['q_length'], s['q_angle']) == (e['q_length'], e['q_angle'])    # the cost sees the same Q
+    # One law, R = sigma^2 I: the same coefficients for both blocks in the detector and the selector.
+    for node in ('detector', 'selector'):
+        p = paper[node]
+        assert p['pdn_a_pos'] == p['pdn_a_rot'] and p['pdn_b_pos'] == p['pdn_b_rot']
+        assert p['pdn_floor_pos'] == p['pdn_floor_rot'] == 0.0
     # 'ours' is the parameter files as they are (not the paper's choices).
     assert (ours['estimator']['estimator'], ours['selector']['optimizer']) != ('ekf', 'direct')
     changed = {(node, k) for node in ours for k in set(ours[node]) | set(paper[node])
                if ours[node].get(k) != paper[node].get(k)}
     assert changed <= {(node, k) for node, over in ex.SYSTEMS['paper'].items() for k in over}
     assert {('estimator', 'estimator'), ('selector', 'optimizer'), ('selector', 'criterion')} <= changed
-    assert ex.node_parameters(spec, system='paper')['sim'] == ours['sim']       # same robots
+    # Same robots (the start is the paper's random one).
+    assert {k: v for k, v in paper['sim'].items() if k != 'random_start'} == ours['sim']
     with pytest.raises(ValueError, match='quantum'):
         ex.ExperimentConfig(system='quantum')
 
@@ -178,7 +187,7 @@ def test_run_settings_cover_what_changes_results_and_nothing_else() -> None:
     base = ex.ExperimentConfig(repetitions=2, iterations=10, methods=('AL', 'R'), seed_base=3)
     s = ex.run_settings(base, 'AL')
     assert s['selector.strategy'] == 'al' and s['iterations'] == 10 and s['seed_base'] == 3
-    assert s['system'] == 'ours' and s['sim.image_rate'] == base.graph.image_rate
+    assert 'system' not in s and s['sim.image_rate'] == base.graph.image_rate
     # Per-repetition seeds are not settings (they follow from seed_base).
     assert not {'sim.perturb_seed', 'estimator.initial_seed', 'selector.seed'} & set(s)
     h = ex.settings_hash(s)
@@ -218,7 +227,7 @@ def test_resume_with_other_settings_is_refused_naming_them(tmp_path: Path) -> No
     with pytest.raises(ValueError, match='other settings') as err:
         ex.run_experiment(replace(config, system='paper'), stream=log)
     message = str(err.value)
-    for key in ("selector.optimizer: 'batch' -> 'direct'", "estimator.estimator: 'map' -> 'ekf'", 'system',
+    for key in ("selector.optimizer: 'batch' -> 'direct'", "estimator.estimator: 'map' -> 'ekf'",
                 'AL:', 'R:', '--force-new'):
         assert key in message, message
     assert ' iterations: ' not in message and 'seed_base' not in message     # only what differs
@@ -276,3 +285,37 @@ def test_domain_ids_are_distinct_and_valid() -> None:
     assert ex.domain_ids(ex.ExperimentConfig(jobs=2, domain_base=40)) == [40, 41]
     with pytest.raises(ValueError, match='20'):
         ex.domain_ids(ex.ExperimentConfig(jobs=20))
+
+
+@pytest.mark.parametrize('text, expected', [
+    ('estimator.q_length=1e-6', ('estimator', 'q_length', 1e-6)),
+    ('estimator.gate_probability=0.0', ('estimator', 'gate_probability', 0.0)),
+    ('selector.max_evals=200', ('selector', 'max_evals', 200)),
+    ('sim.random_start=true', ('sim', 'random_start', True)),
+    ('selector.algorithm=DIRECT', ('selector', 'algorithm', 'DIRECT')),
+    ('sim.initial_positions_deg=[1.0, 2.5]', ('sim', 'initial_positions_deg', [1.0, 2.5]))])
+def test_set_values_are_typed_as_ros_parameters(text: str, expected: tuple) -> None:
+    node, name, value = ex.parse_override(text)
+    assert (node, name, value) == expected and type(value) is type(expected[2])
+
+
+@pytest.mark.parametrize('text, word', [('q_length=1', 'NODE.PARAMETER'), ('estimator.q_length', 'NODE'),
+                                        ('planner.gamma=1.0', "'planner'")])
+def test_bad_set_is_refused_naming_it(text: str, word: str) -> None:
+    with pytest.raises(ValueError, match=word):
+        ex.parse_override(text)
+    assert ex.main(['--set', text, '--repetitions', '1']) == 2
+
+
+def test_set_overrides_the_system_and_the_same_parameters_share_finished_runs() -> None:
+    c = ex.config_from_args(['--set', 'estimator.q_length=1e-6', '--set', 'selector.gamma=0.5'])
+    assert c.overrides == {'estimator': {'q_length': 1e-6}, 'selector': {'gamma': 0.5}}
+    p = ex.node_parameters(ex.RunSpec('UCSAL', 0, 1, 5), c.graph, c.system, c.overrides)
+    assert (p['estimator']['q_length'], p['selector']['gamma']) == (1e-6, 0.5)
+    assert p['selector']['strategy'] == 'ucsal'                      # the method still wins
+    # The paper's system reached through --set on ours is the same runs as --system paper.
+    from calibration_bringup.systems import PAPER
+    via_set = ex.ExperimentConfig(system='ours', overrides=PAPER)
+    assert ex.run_settings(via_set, 'AL') == ex.run_settings(ex.ExperimentConfig(system='paper'), 'AL')
+    with pytest.raises(ValueError, match='planner'):
+        ex.ExperimentConfig(overrides={'planner': {'gamma': 1.0}})

@@ -40,11 +40,15 @@ class PoseDependentSettings:
                                (-1.0, 10.0))
     pdn_b_rot: float = setting(-1.0, 'Pose-dependent orientation variance per (phi-45)^2 [rad^2/deg^2]'
                                + _FROM_DESCRIPTION, (-1.0, 1.0))
+    pdn_floor_pos: float = setting(-1.0, 'Pose-dependent position variance floor [m^2] (0 with equal a, b for both '
+                                   "blocks: the paper's single law)" + _FROM_DESCRIPTION, (-1.0, 1.0))
+    pdn_floor_rot: float = setting(-1.0, 'Pose-dependent orientation variance floor [rad^2]' + _FROM_DESCRIPTION,
+                                   (-1.0, 1.0))
 
     def build(self, model: ArmModel | None = None) -> PoseDependentNoise:
         """The description's law (the built-in defaults without ``model``) with the coefficients
         set here (>= 0) in place of its own."""
-        given = {k: getattr(self, f'pdn_{k}') for k in ('a_pos', 'b_pos', 'a_rot', 'b_rot')}
+        given = {k: getattr(self, f'pdn_{k}') for k in ('a_pos', 'b_pos', 'a_rot', 'b_rot', 'floor_pos', 'floor_rot')}
         overrides = {k: v for k, v in given.items() if v >= 0}
         return PoseDependentNoise.for_robot(model, **overrides) if model is not None \
             else PoseDependentNoise(**overrides)

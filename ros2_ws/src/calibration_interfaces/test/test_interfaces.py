@@ -240,3 +240,8 @@ def test_noise_parameters_take_the_description_law_unless_set() -> None:
     assert isinstance(NoiseSettings(noise_model='constant').build(ur), ConstantNoise)
     spec = {s.name: s for s in parameter_specs(PoseDependentSettings)}['pdn_a_pos']
     assert spec.default == -1.0 and spec.range[0] == -1.0 and 'description' in spec.description
+    # Equal coefficients for both blocks and no floors: the paper's single law R = sigma^2 I.
+    paper = NoiseSettings().build(ur, PoseDependentSettings(pdn_a_pos=1e-4, pdn_a_rot=1e-4, pdn_b_pos=1e-7,
+                                                            pdn_b_rot=1e-7, pdn_floor_pos=0.0, pdn_floor_rot=0.0))
+    assert paper == PoseDependentNoise.paper(1e-4, 1e-7)
+    assert np.allclose(paper.covariance(0.3, 15.0), (1e-4 * 0.09 + 1e-7 * 900) * np.eye(6))

@@ -42,7 +42,10 @@ class SimSettings:
     # the experiment sim ticks (calibration_bringup.experiment.GraphSettings).
     max_joint_speed_deg: float = setting(30.0, 'Speed limit of every joint [deg/s]', (1.0, 3600.0))
     initial_positions_deg: tuple[float, ...] = setting((), 'Arm joints at start [deg]; empty = centre of the '
-                                                       'calibration box', array_type='double')
+                                                       'calibration box (or random_start)', array_type='double')
+    random_start: bool = setting(False, 'With empty initial_positions_deg: start at a configuration drawn '
+                                 'uniformly in the calibration box from perturb_seed (as the paper: one random '
+                                 'start per experiment, shared by the methods)')
     head_pose_deg: tuple[float, ...] = setting((), "Head joints (neck pitch, roll, yaw, eye tilt, eye pan) [deg], "
                                                "held still; empty = the description's", array_type='double')
     cameras: tuple[str, ...] = setting((), "Cameras to simulate (the description's eyes or fixed cameras, by "

@@ -75,7 +75,7 @@ from trajectory_msgs.msg import JointTrajectory
 from body_schema.arm_visuals import description_urdf
 from body_schema.extrinsics import corrections, parse_std, perturb_pose, random_delta
 from body_schema.robot import load_robot
-from body_schema.sampling import perturb_dh
+from body_schema.sampling import perturb_dh, uniform_configs
 from calibration_interfaces.contract import RELIABLE, optical_frame
 from calibration_interfaces.dh_file import read_dh_file
 from calibration_interfaces.messages import extrinsics_to_msg, matrix_to_pose_msg, table_to_msg
@@ -151,8 +151,12 @@ class SimNode(Node):
         self.intrinsics = r.camera.scaled(s.image_width or r.camera.width, s.image_height or r.camera.height)
         self.cameras = {eye: r.camera_pose(eye, head) for eye in cameras}      # published
         self.real_cameras = {eye: perturb_pose(pose, cam_delta) for eye, pose in self.cameras.items()}
-        q0 = (np.radians(np.asarray(s.initial_positions_deg, dtype=float)) if s.initial_positions_deg
-              else r.calibration_box.mean(axis=1))
+        if s.initial_positions_deg:
+            q0 = np.radians(np.asarray(s.initial_positions_deg, dtype=float))
+        elif s.random_start:    # a stream of its own: the DH and extrinsics draws are unchanged
+            q0 = uniform_configs(r.calibration_box, 1, np.random.default_rng([max(s.perturb_seed, 0), 17]))[0]
+        else:
+            q0 = r.calibration_box.mean(axis=1)
         q0 = validate_command(self.robot.joint_names, [q0], [], self.robot.joint_names,
                               self.robot.limits, q0).targets[0]
         self.follower = TrajectoryFollower(q0, np.radians(s.max_joint_speed_deg))

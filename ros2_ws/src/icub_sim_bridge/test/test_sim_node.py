@@ -328,3 +328,20 @@ def test_a_perturbed_camera_and_marker_are_rendered_but_the_description_is_publi
     # The DH draw is the same as without them (a stream of its own).
     plain = make_sim(ros, robot='ur5e', image_rate=0.0, perturb_seed=3)
     np.testing.assert_array_equal(plain.true_dh, sim.true_dh)
+
+
+def test_a_random_start_is_drawn_in_the_box_per_robot_seed(ros) -> None:
+    def start(**params):
+        return make_sim(ros, image_rate=0.0, random_start=True, **params).follower.q
+
+    box = ROBOT.calibration_box
+    a, a_again, b = start(perturb_seed=5), start(perturb_seed=5), start(perturb_seed=6)
+    assert np.all((a >= box[:, 0]) & (a <= box[:, 1])) and np.all((b >= box[:, 0]) & (b <= box[:, 1]))
+    np.testing.assert_array_equal(a, a_again)                 # shared by every method of a repetition
+    assert np.max(np.abs(a - b)) > 1e-3
+    assert np.max(np.abs(a - box.mean(axis=1))) > 1e-3        # not the default centre
+    # The drawn start does not move the robot's own draw, and explicit positions still win.
+    assert np.array_equal(make_sim(ros, image_rate=0.0, random_start=True).true_dh,
+                          make_sim(ros, image_rate=0.0).true_dh)
+    given = np.radians([-50.0, 60.0, 70.0, 40.0, 10.0, -30.0, 0.0])
+    np.testing.assert_allclose(start(perturb_seed=5, initial_positions_deg=list(np.degrees(given))), given)

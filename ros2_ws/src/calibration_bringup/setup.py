@@ -28,6 +28,8 @@ setup(
             'recorder_node = calibration_bringup.recorder_node:main',
             'bag_player = calibration_bringup.player_node:main',
             'experiment = calibration_bringup.experiment:main',
+            'ablation = calibration_bringup.ablation:main',
+            'paper_tuning = calibration_bringup.paper_tuning:main',
             'recover = calibration_bringup.recover:main',
         ],
     },

@@ -241,7 +241,9 @@ class ExperimentConfig:
     ``address`` None starts a local Ray runtime of ``jobs`` CPUs; otherwise ``ray.init``'s address
     (``auto``, ``ray://host:10001``, ``host:6379``). ``shared``: ``output`` is visible at the same
     path on every node (the tasks write logs and MCAPs there). ``force_new``: move earlier results
-    in ``output`` aside instead of resuming them.
+    in ``output`` aside instead of resuming them. ``combine``: write ``metrics.csv`` (and with
+    ``figures`` the summary and figures) from this configuration's runs at the end; off when another
+    command shares the directory's runs (the ablation) and must not replace its combined files.
     """
 
     repetitions: int = 50
@@ -259,6 +261,7 @@ class ExperimentConfig:
     shared: bool = False
     force_new: bool = False
     overrides: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    combine: bool = True
 
     def __post_init__(self) -> None:
         bad_nodes = sorted(set(self.overrides) - set(NODES))
@@ -805,8 +808,9 @@ def run_experiment(config: ExperimentConfig, stream: TextIO = sys.stderr) -> Exp
     if todo:
         with ray_runtime(config.address, config.jobs):
             outcome = _run_all(todo, config, record, hashes, stream)
-    n = combine_runs(root, runs, root / 'metrics.csv')
-    stream.write(f'experiment: {n} rows in {root / "metrics.csv"}\n')
+    n = combine_runs(root, runs, root / 'metrics.csv') if config.combine else 0
+    if config.combine:
+        stream.write(f'experiment: {n} rows in {root / "metrics.csv"}\n')
     if config.figures and n:
         from . import experiment_figures
 

@@ -14,7 +14,8 @@ the per-run CSVs under ``<dir>/runs`` are read instead) and writes:
 * ``figures/cn_vs_pose_dependent.png``: AL, UCSAL, CCSAL with the pose-dependent noise model vs
   the constant one (CN);
 * ``summary.md``: final errors (mean +- std), total movement, movement relative to AL (with the
-  same noise model), discarded samples, and the per-iteration time breakdown.
+  same noise model), discarded samples, paired comparisons, the paper's four claims tested on
+  these runs (:func:`paper_claims`), and the per-iteration time breakdown.
 """
 from __future__ import annotations
 
@@ -30,7 +31,8 @@ from typing import Any, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ['MethodRuns', 'load_metrics', 'paired_difference', 'summary_markdown', 'plot_all', 'render', 'main']
+__all__ = ['MethodRuns', 'load_metrics', 'paired_difference', 'Claim', 'paper_claims', 'claims_markdown',
+           'summary_markdown', 'plot_all', 'render', 'main']
 
 #: Plot order and style: the paper's four methods, then the CN variants.
 ORDER = ('R', 'AL', 'UCSAL', 'CCSAL', 'AL-CN', 'UCSAL-CN', 'CCSAL-CN')
@@ -176,6 +178,98 @@ def paired_difference(first: MethodRuns, second: MethodRuns, column: str) -> tup
     return int(d.size), float(np.median(d)), int(np.sum(d < 0)), p
 
 
+#: Significance level of the paired tests behind the claims.
+ALPHA = 0.05
+
+
+@dataclass(frozen=True)
+class Claim:
+    """One of the paper's claims tested on an experiment's runs.
+
+    Attributes
+    ----------
+    claim : str
+    verdict : str
+        ``'yes'``, ``'partly'`` (some of its parts hold), ``'no'``, or ``'-'`` (methods missing).
+    evidence : str
+        The figures behind the verdict.
+    """
+
+    claim: str
+    verdict: str
+    evidence: str
+
+
+def _verdict(parts: Sequence[bool]) -> str:
+    return '-' if not parts else 'yes' if all(parts) else 'partly' if any(parts) else 'no'
+
+
+def _better(first: MethodRuns, second: MethodRuns, column: str) -> tuple[bool, str]:
+    """Whether ``first`` ends lower than ``second`` (paired: median difference < 0, Wilcoxon p < ALPHA)."""
+    n, d, lower, p = paired_difference(first, second, column)
+    return (n > 0 and d < 0 and p < ALPHA), f'{d:+.3g}, {lower}/{n} lower, p = {p:.2g}'
+
+
+def paper_claims(data: dict[str, MethodRuns]) -> list[Claim]:
+    """The paper's four qualitative claims (issue #28's operational form), tested on ``data``.
+
+    1. AL's mean final position error within 1.25x R's, and AL better than R in orientation
+       (paired, p < :data:`ALPHA`).
+    2. UCSAL and CCSAL at <= 0.6x AL's mean movement with <= 1.25x its mean final position and
+       orientation errors.
+    3. The pose-dependent noise model better than CN for AL, UCSAL and CCSAL, in position and in
+       orientation (paired, p < :data:`ALPHA`).
+    4. AL, UCSAL and CCSAL discard fewer attempts than R (paired, p < :data:`ALPHA`).
+    """
+    def mean(name: str, column: str) -> float:
+        return float(np.nanmean(data[name].final(column)))
+
+    out: list[Claim] = []
+    parts: list[bool] = []
+    evidence = []
+    if {'AL', 'R'} <= set(data):
+        ratio = mean('AL', 'position_mm') / mean('R', 'position_mm')
+        ok, text = _better(data['AL'], data['R'], 'orientation_deg')
+        parts, evidence = [ratio <= 1.25, ok], [f'position AL / R = {ratio:.2f}', f'orientation AL - R: {text}']
+    out.append(Claim('AL within 1.25x of R in position and better than R in orientation', _verdict(parts),
+                     '; '.join(evidence)))
+    parts, evidence = [], []
+    for name in ('UCSAL', 'CCSAL'):
+        if {name, 'AL'} <= set(data):
+            mv, pe, oe = (mean(name, c) / mean('AL', c) for c in ('movement_deg', 'position_mm', 'orientation_deg'))
+            parts.append(mv <= 0.6 and pe <= 1.25 and oe <= 1.25)
+            evidence.append(f'{name}: movement {mv:.2f}x, position {pe:.2f}x, orientation {oe:.2f}x')
+    out.append(Claim("UCSAL and CCSAL at <= 0.6x AL's movement with <= 1.25x its error", _verdict(parts),
+                     '; '.join(evidence)))
+    parts, evidence = [], []
+    for name in ('AL', 'UCSAL', 'CCSAL'):
+        if {name, f'{name}-CN'} <= set(data):
+            for column, unit in (('position_mm', 'mm'), ('orientation_deg', 'deg')):
+                ok, text = _better(data[name], data[f'{name}-CN'], column)
+                parts.append(ok)
+                evidence.append(f'{name} - {name}-CN {unit}: {text}')
+    out.append(Claim('the pose-dependent noise model beats constant noise (CN)', _verdict(parts),
+                     '; '.join(evidence)))
+    parts, evidence = [], []
+    for name in ('AL', 'UCSAL', 'CCSAL'):
+        if {name, 'R'} <= set(data):
+            ok, text = _better(data[name], data['R'], 'discarded')
+            parts.append(ok)
+            evidence.append(f'{name} {mean(name, "discarded"):.1f} vs R {mean("R", "discarded"):.1f} ({text})')
+    out.append(Claim('the active methods discard fewer attempts than R', _verdict(parts), '; '.join(evidence)))
+    return out
+
+
+def claims_markdown(data: dict[str, MethodRuns]) -> list[str]:
+    """The claims as a Markdown section (lines)."""
+    lines = ['', "## The paper's claims", '',
+             f'Tested on these runs (paired tests: median difference, repetitions where the first is lower, '
+             f'two-sided Wilcoxon signed-rank p; significant at p < {ALPHA}). "partly": some of the claim\'s '
+             'parts hold.', '', '| claim | holds | evidence |', '|---|---|---|']
+    lines += [f'| {c.claim} | {c.verdict} | {c.evidence or "-"} |' for c in paper_claims(data)]
+    return lines
+
+
 def summary_markdown(data: dict[str, MethodRuns], system: str | None = None) -> str:
     """The summary tables (Markdown): accuracy and movement, then time per iteration; ``system``
     (the runner's ``--system``), if known, in the heading."""
@@ -221,6 +315,7 @@ def summary_markdown(data: dict[str, MethodRuns], system: str | None = None) -> 
         lines += ['', f'AL after {al.iterations} iterations: {p:.2f} mm (target <= 5 mm: '
                       f'{"met" if p <= 5 else "not met"}), {o:.2f} deg (target <= 2 deg: '
                       f'{"met" if o <= 2 else "not met"}).']
+    lines += claims_markdown(data)
     lines += ['', '## Time per iteration', '',
               'Means over every iteration of every run. Wall seconds except the simulated move; '
               '"sim node" is the simulator\'s callbacks (physics, rendering, publishing), "detection" '

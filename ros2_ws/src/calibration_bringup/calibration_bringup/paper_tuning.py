@@ -2,8 +2,8 @@
 
 Usage::
 
-    python -m calibration_bringup.paper_tuning                 # every stage, 12 tuning repetitions
-    python -m calibration_bringup.paper_tuning --stages law cn --repetitions 12 --jobs 2
+    python -m calibration_bringup.paper_tuning                 # the whole procedure, 12 tuning repetitions
+    python -m calibration_bringup.paper_tuning --repetitions 4 --iterations 10 --output /tmp/t   # a dry run
 
 The paper gives the form of its noise law, its cost, UCSAL's and CCSAL's movement terms and its
 occlusion model, but not their constants (it chose the noise law's ``a`` and ``b`` "by trial and
@@ -26,13 +26,16 @@ run (docs/paper_fidelity.md):
   2. ``cn``: the CN constant ``cn_sigma`` at the chosen ``Q``, on R with the constant model;
   3. ``occlusion``: the cost's penalty ``a`` (its ``b`` stays at 10 / m) and the occlusion
      kernel's width together (both decide how AL avoids where the hand is not seen), on **AL**;
-  4. ``movement``: UCSAL's ``gamma`` and CCSAL's ``delta``, each the value with the least mean
+  4. ``search``: DIRECT's evaluation budget per selection, on AL: the smallest budget whose
+     objective is within :data:`BUDGET_TOLERANCE` of the best budget's;
+  5. ``movement``: UCSAL's ``gamma`` and CCSAL's ``delta``, each the value with the least mean
      movement among those whose mean final position and orientation errors stay within
      ``1.25x`` AL's on the tuning seeds (the paper's "similar accuracy" operating point; if none
      does, the one with the lowest objective).
 
 Each grid point is an experiment (:mod:`calibration_bringup.experiment`) in
-``<output>/<stage>/<point>/``, resumable like any experiment; the record of every point and
+``<output>/<stage>/<point>/``, resumable like any experiment: the command always walks the whole
+procedure, and points already finished cost nothing; the record of every point and
 the choices go to ``<output>/tuning.md`` and ``tuning.json`` (``docs/results/paper/`` keeps
 the copy that :data:`calibration_bringup.systems.PAPER_TUNED` must equal: a test checks it).
 """
@@ -60,7 +63,8 @@ SEED_BASE = 1000
 
 #: Starting values: what a stage uses for a constant a later stage has not chosen yet.
 START: dict[str, float] = {'q_fraction': 0.0, 'noise_a': 1e-4, 'noise_b': 1e-7, 'cn_sigma': 0.01,
-                           'penalty_a': 0.0, 'penalty_b': 10.0, 'length_scale': 0.1, 'gamma': 0.0, 'delta': 1.0}
+                           'penalty_a': 0.0, 'penalty_b': 10.0, 'length_scale': 0.1, 'max_evals': 1000,
+                           'gamma': 0.0, 'delta': 1.0}
 
 
 @dataclass(frozen=True)
@@ -98,11 +102,15 @@ STAGES: tuple[Stage, ...] = (
                                q_fraction=(0.0, 1e-5, 1e-4, 1e-3))),
     Stage('cn', ('R',), _grid(cn_sigma=(3e-4, 1e-3, 3e-3, 1e-2, 3e-2)), constant_noise=True),
     Stage('occlusion', ('AL',), _grid(penalty_a=(0.0, 1e-3, 1e-2, 1e-1), length_scale=(0.05, 0.1, 0.2, 0.5))),
+    Stage('search', ('AL',), _grid(max_evals=(250, 1000, 4000))),
     Stage('movement', ('UCSAL', 'CCSAL'), _grid(gamma=(1e-5, 1e-4, 1e-3, 1e-2)) + _grid(delta=(0.1, 0.2, 0.3, 0.5))),
 )
 
 #: How far UCSAL's and CCSAL's errors may be above AL's at their chosen constant (stage movement).
 ERROR_RATIO = 1.25
+#: Stage search: a budget whose objective is within this of the best budget's is as good
+#: (0.05 in the sum of log errors: about 2.5% on each error).
+BUDGET_TOLERANCE = 0.05
 
 
 @dataclass
@@ -166,9 +174,15 @@ def choose(stage: Stage, results: Sequence[PointResult],
         For stage ``movement``: AL's summary at the chosen constants (``position_mm``,
         ``orientation_deg``).
     """
+    def total(r: PointResult) -> float:
+        return sum(m['objective'] for m in r.methods.values())
+
+    if stage.name == 'search':
+        best = min(total(r) for r in results)
+        good = [r for r in results if total(r) <= best + BUDGET_TOLERANCE]
+        return dict(min(good, key=lambda r: r.point['max_evals']).point)
     if stage.name != 'movement':
-        best = min(results, key=lambda r: sum(m['objective'] for m in r.methods.values()))
-        return dict(best.point)
+        return dict(min(results, key=total).point)
     if reference is None:
         raise ValueError("stage 'movement' needs AL's reference errors")
     chosen: dict[str, float] = {}
@@ -244,8 +258,6 @@ def run_tuning(args: argparse.Namespace, stream: TextIO = sys.stderr) -> dict[st
     t0 = time.monotonic()
     with ray_runtime(None, args.jobs):
         for stage in STAGES:
-            if stage.name not in args.stages:
-                continue
             stream.write(f'paper_tuning: stage {stage.name}: {len(stage.grid)} points x {args.repetitions} '
                          f'repetitions of {", ".join(stage.methods)}\n')
             mine = [_run_point(stage, p, values, args, stream) for p in stage.grid]
@@ -266,8 +278,6 @@ def run_tuning(args: argparse.Namespace, stream: TextIO = sys.stderr) -> dict[st
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog='paper_tuning', description=__doc__.split('\n\n')[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument('--stages', nargs='+', default=[s.name for s in STAGES], choices=[s.name for s in STAGES],
-                   help='stages to run (in the procedure\'s order; a skipped stage keeps its START values) [all]')
     p.add_argument('--repetitions', type=int, default=12, help='tuning repetitions per point [12]')
     p.add_argument('--iterations', type=int, default=50, help='iterations per run [50]')
     p.add_argument('--jobs', type=int, default=2, help='runs in flight (local Ray runtime CPUs) [2]')

@@ -40,6 +40,8 @@ PAPER_TUNED: dict[str, float] = {
     'penalty_b': 10.0,
     # The smoothed Beta's squared-exponential kernel width (normalised joints).
     'length_scale': 0.1,
+    # DIRECT's evaluations per selection.
+    'max_evals': 1000,
     # UCSAL's weight on the normalised L1 distance, CCSAL's half-width (normalised joints).
     'gamma': 0.01,
     'delta': 0.3,
@@ -71,14 +73,16 @@ def paper_system(tuned: Mapping[str, float] = PAPER_TUNED) -> dict[str, dict[str
         # OpenCV's ArUco module as it comes: no sub-pixel or edge refinement of the corners, no
         # polish of the pose, no gate on reprojection error, ambiguity or marker size.
         'detector': {'corner_refinement': False, 'edge_refinement': False, 'refine_lm': False,
-                     'max_reprojection_error_px': 100.0, 'ambiguity_ratio': 1.0, 'min_side_px': 0.0, **law},
+                     'max_reprojection_error_px': 100.0, 'ambiguity_ratio': 1.0, 'ambiguity_margin_px': 0.0,
+                     'min_side_px': 0.0, **law},
         # The EKF (eqs. 3-6): one linearisation per update, P <- P + Q before each, no outlier gate.
         'estimator': {'estimator': 'ekf', 'iterations': 1, 'gate_probability': 0.0, **q, **cn},
         # C = C0 / eta + a arctan(b p_x) (eq. 8) with C0 the expected trace after the next update
         # of P + Q (eq. 7); the smoothed Beta from a flat prior Be(1, 1) (eqs. 12-14); NLopt's
         # DIRECT (Jones et al.); repeated configurations allowed.
         'selector': {'criterion': 'a_optimal', 'occlusion_mode': 'paper', 'occlusion_prior': 'flat',
-                     'optimizer': 'direct', 'algorithm': 'DIRECT', 'max_evals': 1000, 'repeat_tolerance': 0.0,
+                     'optimizer': 'direct', 'algorithm': 'DIRECT', 'max_evals': int(t['max_evals']),
+                     'repeat_tolerance': 0.0,
                      'penalty_a': float(t['penalty_a']), 'penalty_b': float(t['penalty_b']),
                      'occlusion_length_scale': float(t['length_scale']), 'occlusion_a0': 1.0, 'occlusion_b0': 1.0,
                      'gamma': float(t['gamma']), 'delta': float(t['delta']), **q, **law, **cn},
@@ -125,7 +129,7 @@ ABLATION: tuple[AblationStep, ...] = (
     AblationStep('detector', "our detector: sub-pixel and edge-fitted corners, LM polish, gates on "
                  'reprojection (1 px), flip ambiguity and size',
                  _keys('detector', 'corner_refinement', 'edge_refinement', 'refine_lm', 'max_reprojection_error_px',
-                       'ambiguity_ratio', 'min_side_px')),
+                       'ambiguity_ratio', 'ambiguity_margin_px', 'min_side_px')),
     AblationStep('noise-law', 'noise law fitted per block (position, orientation) with a floor, instead of '
                  'one sigma^2 I; CN fitted to the detector',
                  _keys('detector', *_LAW) + _keys('estimator', *_CN) + _keys('selector', *_LAW, *_CN)),
@@ -144,7 +148,7 @@ ABLATION: tuple[AblationStep, ...] = (
     AblationStep('visibility', 'geometric visibility prior from the estimate (instead of the flat Beta prior)',
                  _keys('selector', 'occlusion_prior')),
     AblationStep('batch', 'batched search: 512 Sobol candidates, BOBYQA refinement and snapping (instead of '
-                 'DIRECT, 1000 evaluations)', _keys('selector', 'optimizer', 'algorithm', 'max_evals')),
+                 "DIRECT)", _keys('selector', 'optimizer', 'algorithm', 'max_evals')),
     AblationStep('no-repeats', 'no configuration selected twice', _keys('selector', 'repeat_tolerance')),
 )
 

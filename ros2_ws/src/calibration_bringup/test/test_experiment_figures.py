@@ -137,3 +137,38 @@ def test_paired_difference_pairs_by_repetition() -> None:
     assert p == pytest.approx(0.03125)          # exact two-sided signed-rank p for 6 of 6 one way
     n, d, lower, p = figs.paired_difference(a, a, 'position_mm')
     assert (n, d, lower) == (6, 0.0, 0) and np.isnan(p)
+
+
+def _method(name: str, position: np.ndarray, orientation: np.ndarray, movement: float = 1000.0,
+            discarded: np.ndarray | None = None) -> figs.MethodRuns:
+    """Runs whose final values are the given arrays (one per repetition)."""
+    n = position.size
+    cols = {c: np.zeros((n, 2)) for c in (*figs.NUMERIC, 'rejected')}
+    cols['position_mm'][:, 1], cols['orientation_deg'][:, 1] = position, orientation
+    cols['movement_deg'][:, 1] = movement
+    cols['discarded'][:, 1] = discarded if discarded is not None else np.full(n, 10.0)
+    return figs.MethodRuns(name, np.arange(n), cols)
+
+
+def test_the_papers_claims_are_judged_from_the_runs() -> None:
+    rng = np.random.default_rng(3)
+    r_pos, r_rot = rng.uniform(10, 20, 20), rng.uniform(3, 5, 20)
+    few = rng.uniform(2, 4, 20)
+    data = {'R': _method('R', r_pos, r_rot, 5000.0, few + 10),
+            'AL': _method('AL', 1.2 * r_pos, r_rot - 1.0, 4000.0, few),
+            'UCSAL': _method('UCSAL', 1.2 * r_pos, r_rot - 0.9, 2000.0, few),     # 0.5x movement, 1.0x error
+            'CCSAL': _method('CCSAL', 2.0 * r_pos, r_rot - 0.9, 2000.0, few),     # 1.67x error: fails
+            'AL-CN': _method('AL-CN', 1.5 * r_pos, r_rot, 4000.0, few)}
+    one, two, three, four = figs.paper_claims(data)
+    assert one.verdict == 'yes' and 'position AL / R = 1.20' in one.evidence
+    assert two.verdict == 'partly' and 'CCSAL: movement 0.50x, position 1.67x' in two.evidence
+    assert three.verdict == 'yes' and 'AL - AL-CN mm: ' in three.evidence and 'UCSAL-CN' not in three.evidence
+    assert four.verdict == 'yes' and 'p = ' in four.evidence
+    # AL far worse than R in position, no better in orientation: the first claim fails outright.
+    worse = {**data, 'AL': _method('AL', 3.0 * r_pos, r_rot + 0.5, 4000.0, few + 20)}
+    first, *_, last = figs.paper_claims(worse)
+    assert first.verdict == 'no' and last.verdict == 'partly'
+    # Without the methods a claim needs, it is not judged.
+    assert [c.verdict for c in figs.paper_claims({'R': data['R']})] == ['-'] * 4
+    text = '\n'.join(figs.claims_markdown(data))
+    assert "## The paper's claims" in text and '| AL within 1.25x of R' in text

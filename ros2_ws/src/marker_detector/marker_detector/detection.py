@@ -115,7 +115,7 @@ class DetectorConfig:
             if not np.isfinite(v) or v < 0:
                 raise ValueError(f'{name}: must be finite and >= 0, got {v}')
         if self.ambiguity_ratio < 1.0:
-            raise ValueError(f'ambiguity_ratio: must be >= 1 (1 disables the test), '
+            raise ValueError(f'ambiguity_ratio: must be >= 1 (1 with ambiguity_margin_px 0 disables the test), '
                              f'got {self.ambiguity_ratio}')
 
 

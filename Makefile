@@ -15,7 +15,7 @@ export AMENT_PREFIX_PATH := $(VENV)$(if $(AMENT_PREFIX_PATH),:$(AMENT_PREFIX_PAT
 export PATH := $(VENV)/bin:$(PATH)
 export PYTHONDONTWRITEBYTECODE := 1
 
-.PHONY: setup test demo bench experiment experiment-paper experiment-quick clean
+.PHONY: setup test demo docs bench experiment experiment-paper experiment-quick clean
 
 setup: $(STAMP)
 
@@ -28,6 +28,12 @@ test: setup
 
 demo: setup   # `make demo VIZ=1`: with the live 3D view in the browser
 	@VIZ=$(VIZ) bash scripts/demo.sh
+
+# The documentation site, strict: a broken link or anchor, a page outside the nav or an unresolved
+# API reference fails the build. `make docs SITE=/tmp/site` builds elsewhere.
+SITE ?= site
+docs: setup
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --site-dir $(SITE)
 
 bench: setup
 	$(PY) -m tools.bench
@@ -43,4 +49,4 @@ experiment-quick: setup
 	$(PY) -m calibration_bringup.experiment --system ours --quick $(EXPERIMENT_ARGS)
 
 clean:
-	rm -rf $(VENV) build install log .pytest_cache
+	rm -rf $(VENV) build install log .pytest_cache site

@@ -15,7 +15,7 @@ export AMENT_PREFIX_PATH := $(VENV)$(if $(AMENT_PREFIX_PATH),:$(AMENT_PREFIX_PAT
 export PATH := $(VENV)/bin:$(PATH)
 export PYTHONDONTWRITEBYTECODE := 1
 
-.PHONY: setup test demo bench experiment experiment-paper experiment-quick experiment-ablation paper-tuning clean
+.PHONY: setup test demo docs bench experiment experiment-paper experiment-quick experiment-ablation paper-tuning clean
 
 setup: $(STAMP)
 
@@ -28,6 +28,12 @@ test: setup
 
 demo: setup   # `make demo VIZ=1`: with the live 3D view in the browser
 	@VIZ=$(VIZ) bash scripts/demo.sh
+
+# The documentation site, strict: a broken link or anchor, a page outside the nav or an unresolved
+# API reference fails the build. `make docs SITE=/tmp/site` builds elsewhere.
+SITE ?= site
+docs: setup
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict --site-dir $(SITE)
 
 bench: setup
 	$(PY) -m tools.bench
@@ -52,4 +58,4 @@ paper-tuning: setup
 	$(PY) -m calibration_bringup.paper_tuning $(EXPERIMENT_ARGS)
 
 clean:
-	rm -rf $(VENV) build install log .pytest_cache
+	rm -rf $(VENV) build install log .pytest_cache site

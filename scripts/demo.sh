@@ -5,4 +5,6 @@ cd "$(dirname "$0")/.."
 # `make demo VIZ=1` also serves the live 3D view and prints its URL (off by default: no extra node).
 viz=(); [ "${VIZ:-0}" = 0 ] || viz=(--viz)
 # --overwrite: a demo is run again and again; it replaces its own previous results/demo.
-exec scripts/run_calibration.sh --strategy al --iterations 50 --seed 1 --output results/demo --overwrite "${viz[@]}"
+# DEMO_ARGS (word-split) come last and so win, e.g. DEMO_ARGS='--iterations 3 --output /tmp/demo'.
+# shellcheck disable=SC2086
+exec scripts/run_calibration.sh --strategy al --iterations 50 --seed 1 --output results/demo --overwrite "${viz[@]}" ${DEMO_ARGS:-}

@@ -248,7 +248,7 @@ fi
 export ROS_DOMAIN_ID=$domain_id
 export PYTHONUNBUFFERED=1 RCUTILS_COLORIZED_OUTPUT=0 RCUTILS_LOGGING_BUFFERED_STREAM=0
 if [ -z "${FASTRTPS_DEFAULT_PROFILES_FILE:-}" ] && [ -f "$config/fastdds_shm.xml" ]; then
-  # Shared-memory segments large enough for whole camera frames (README: Fast DDS profile).
+  # Shared-memory segments large enough for whole camera frames (docs/recording.md: Fast DDS).
   export FASTRTPS_DEFAULT_PROFILES_FILE="$config/fastdds_shm.xml"
   export FASTDDS_DEFAULT_PROFILES_FILE="$config/fastdds_shm.xml"
 fi

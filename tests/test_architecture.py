@@ -68,8 +68,10 @@ def test_the_checker_sees_a_forbidden_import(tmp_path: Path) -> None:
     assert _imports(bad) == {'dh_estimator'}
 
 
-@pytest.mark.parametrize('readme', ['README.md', *(str(p.relative_to(ROOT)) for p in sorted(SRC.glob('*/README.md')))])
+@pytest.mark.parametrize('readme', ['README.md', *(str(p.relative_to(ROOT)) for p in sorted(SRC.glob('*/README.md'))),
+                                    *(str(p.relative_to(ROOT)) for p in sorted((ROOT / 'docs').rglob('*.md')))])
 def test_readme_parameter_tables_match_the_settings_dataclasses(readme: str) -> None:
+    # README, the package READMEs and every docs page (the node pages hold the tables).
     text = (ROOT / readme).read_text()
     assert update_tables(text) == text, (f'{readme}: parameter tables are stale; run '
                                          f'`python -m calibration_interfaces.parameters {readme}`')

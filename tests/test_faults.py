@@ -1,5 +1,5 @@
 """Fault injection on the calibration graph: a dead node, a burst of bad messages, a clock that
-jumps back. The scenarios live in :mod:`tools.fault_table` (which also prints the README's fault
+jumps back. The scenarios live in :mod:`tools.fault_table` (which also prints docs/faults.md's fault
 table from the same rows); here each row is held to what must be true:
 
 * no accepted observation the estimator made is missing from the bag;

@@ -7,6 +7,7 @@ with names from ``BENCHMARKS``.
 """
 from __future__ import annotations
 
+import argparse
 import importlib
 import sys
 from pathlib import Path
@@ -26,13 +27,17 @@ BENCHMARKS: dict[str, tuple[str, list[str]]] = {
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    wanted = argv or list(BENCHMARKS)
+    """Run the named benchmarks (all by default); 2 for an unknown name (``--help``)."""
+    parser = argparse.ArgumentParser(prog='python -m tools.bench', description=__doc__.split('\n\n')[0])
+    parser.add_argument('names', nargs='*', metavar='NAME', help=f'benchmarks to run (default: all of {", ".join(BENCHMARKS)})')
+    parser.add_argument('--output', default='results/bench', help='directory of the <name>.md files (default results/bench)')
+    args = parser.parse_args(sys.argv[1:] if argv is None else argv)
+    wanted = args.names or list(BENCHMARKS)
     unknown = [w for w in wanted if w not in BENCHMARKS]
     if unknown:
         print(f'unknown benchmark(s) {unknown}; choose from {sorted(BENCHMARKS)}', file=sys.stderr)
         return 2
-    out_dir = Path('results/bench')
+    out_dir = Path(args.output)
     out_dir.mkdir(parents=True, exist_ok=True)
     for name in wanted:
         module, args = BENCHMARKS[name]

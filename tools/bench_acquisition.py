@@ -164,7 +164,7 @@ def repeats(planner: Planner) -> int:
 
 #: Selector variants of the study; 'old' is main's selector (no repeat exclusion). The sweeps of
 #: the first selection round ('al', 'ucsal', 'ccsal', 'ucsal_gamma') pin the flat occlusion prior they
-#: were measured with, so their README tables stay reproducible after the default changed. Each maps to
+#: were measured with, so their tables in docs/selector.md stay reproducible after the default changed. Each maps to
 #: overrides of PlannerSettings (strategy, occlusion_mode, criterion, penalty_a, occlusion_a0 / b0)
 #: and SelectorConfig (optimizer, repeat_tolerance, gamma, delta).
 VARIANTS = {

@@ -342,3 +342,16 @@ def binned(outcome: FrameScores, key: str, edges: Sequence[float]) -> list[tuple
             rows.append((label, int(m.sum()), float(np.median(outcome.pos_err[m]) * 1e3),
                          float(np.degrees(np.median(outcome.rot_err[m])))))
     return rows
+
+
+def main(argv: Sequence[str] | None = None) -> str:
+    """``python -m tools.detector_accuracy``: the study's command line is :mod:`tools.detector_bench`'s."""
+    from tools.detector_bench import main as bench_main
+
+    return bench_main(argv)
+
+
+if __name__ == '__main__':
+    import sys
+
+    print(main(sys.argv[1:]))

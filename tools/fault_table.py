@@ -1,4 +1,4 @@
-"""Fault injection on the calibration graph: the scenarios and the README's fault table.
+"""Fault injection on the calibration graph: the scenarios and the fault table of docs/faults.md.
 
 Each scenario runs the in-process graph (:mod:`calibration_bringup.graph`; random strategy, a
 few iterations, MCAP recorder on) and injects one fault mid-run:
@@ -384,7 +384,7 @@ SCENARIOS: dict[str, Callable[[Path], FaultRow]] = {
 
 
 def markdown(rows: list[FaultRow]) -> str:
-    """The README table."""
+    """The fault table of docs/faults.md."""
     lines = ['| fault | injected | nodes survived | run ended | accepted observations lost | silent wrong answers '
              '| outcomes before \\| after the fault; notes |', '|---|---:|---|---|---:|---:|---|']
     for r in rows:

@@ -6,6 +6,7 @@ selection with DIRECT-L at 2000 evaluations and the cost of one evaluation insid
 """
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 from typing import Callable
@@ -29,8 +30,8 @@ def _median_time(fn: Callable[[], object], repeat: int, warmup: int = 3) -> floa
     return float(np.median(times))
 
 
-def measure() -> list[tuple[str, float, str, str]]:
-    """Rows ``(what, seconds, target, unit)``."""
+def measure(scale: float = 1.0) -> list[tuple[str, float, str, str]]:
+    """Rows ``(what, seconds, target, unit)``; ``scale`` multiplies every repeat count (at least 1)."""
     arm = load_robot()
     rng = np.random.default_rng(0)
     q1000 = sampling.uniform_configs(arm.calibration_box, 1000, rng)
@@ -54,19 +55,28 @@ def measure() -> list[tuple[str, float, str, str]]:
         occ.add(t, bool(rng.random() < 0.7))
     cost = AcquisitionCost(arm.base, dh, P, PoseDependentNoise(), arm.camera_pose('left'),
                            arm.markers, occlusion=occ, penalty_a=0.01, penalty_b=10.0)
-    selector = JointSelector(arm.calibration_box, SelectorConfig(strategy='al', max_evals=2000))
+    selector = JointSelector(arm.calibration_box, SelectorConfig(strategy='al', optimizer='direct', max_evals=2000))
+
+    def _n(repeat: int) -> int:
+        return max(1, int(repeat * scale))
+
     return [
-        ('batched FK, 1000 configurations', _median_time(lambda: arm.forward_kinematics(q1000), 50), '<= 5 ms', 'ms'),
-        ('pose Jacobian w.r.t. 28 DH parameters', _median_time(lambda: arm.jacobian_dh(q), 500), '<= 100 us', 'us'),
-        ('EKF update (paper: 1 linearisation)', _median_time(one_update(1), 300), '<= 200 us', 'us'),
-        ('EKF update, iterated (5 linearisations)', _median_time(one_update(5), 100), '-', 'us'),
-        ('acquisition cost, one evaluation (50 occlusion samples)', _median_time(lambda: cost(q), 500), '-', 'us'),
-        ('AL selection, DIRECT-L, 2000 evaluations', _median_time(lambda: selector.select(cost), 5, 1), '<= 0.5 s', 's'),
+        ('batched FK, 1000 configurations', _median_time(lambda: arm.forward_kinematics(q1000), _n(50)), '<= 5 ms', 'ms'),
+        ('pose Jacobian w.r.t. 28 DH parameters', _median_time(lambda: arm.jacobian_dh(q), _n(500)), '<= 100 us', 'us'),
+        ('EKF update (paper: 1 linearisation)', _median_time(one_update(1), _n(300)), '<= 200 us', 'us'),
+        ('EKF update, iterated (5 linearisations)', _median_time(one_update(5), _n(100)), '-', 'us'),
+        ('acquisition cost, one evaluation (50 occlusion samples)', _median_time(lambda: cost(q), _n(500)), '-', 'us'),
+        ('AL selection, DIRECT-L, 2000 evaluations', _median_time(lambda: selector.select(cost), _n(5), 1), '<= 0.5 s', 's'),
     ]
 
 
 def main(argv: list[str] | None = None) -> str:
-    rows = measure()
+    """Measure and return the Markdown table (``--help`` lists the options)."""
+    parser = argparse.ArgumentParser(prog='python -m tools.kinematics_bench', description=__doc__.split('\n\n')[0])
+    parser.add_argument('--scale', type=float, default=1.0,
+                        help='multiply every repeat count by this (0.1: a quick, noisier run; default 1)')
+    args = parser.parse_args(argv)
+    rows = measure(args.scale)
     scale = {'ms': 1e3, 'us': 1e6, 's': 1.0}
     lines = ['## body_schema', '', '| operation | median | target |', '|---|---|---|']
     for what, sec, target, unit in rows:

@@ -7,6 +7,7 @@ compute (wall): capture (render), detect, update, select. Target: compute <= 5% 
 """
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import sys
@@ -74,7 +75,11 @@ def run(iterations: int = 8) -> dict[str, float]:
 
 
 def main(argv: list[str] | None = None) -> str:
-    r = run()
+    """Run the loop and return the Markdown table (``--help`` lists the options)."""
+    parser = argparse.ArgumentParser(prog='python -m tools.loop_bench', description=__doc__.split('\n\n')[0])
+    parser.add_argument('--iterations', type=int, default=8, help='AL iterations of the in-process graph (default 8)')
+    args = parser.parse_args(argv)
+    r = run(args.iterations)
     rows = [
         ('move to target (sim, 30 deg/s)', f"{r['move_sim_s']:.2f} s", ''),
         ('wait for the outcome after settling (sim)', f"{r['outcome_sim_s']:.2f} s", ''),

@@ -7,6 +7,7 @@ markers over the calibration box. (The corner projection error is a test, ``test
 """
 from __future__ import annotations
 
+import argparse
 import time
 
 import numpy as np
@@ -86,6 +87,8 @@ def _node_factor(seconds: float = 4.0) -> tuple[float, int, float]:
 
 
 def main(argv: list[str] | None = None) -> str:
+    """Measure and return the Markdown section (``--help``: it takes no options)."""
+    argparse.ArgumentParser(prog='python -m tools.sim_bench', description=__doc__.split('\n\n')[0]).parse_args(argv)
     from icub_sim_bridge.visibility import measure_visibility
 
     robot = load_robot()

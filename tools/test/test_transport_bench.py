@@ -37,7 +37,7 @@ def test_profile_path_falls_back_to_the_sources(monkeypatch) -> None:
 
 
 # One rerun: the subscriber process once timed out at 70 s on a fresh clone (one run in five);
-# not understood yet (README "Tests").
+# not understood yet (docs/tests.md).
 @pytest.mark.flaky(reruns=1)
 def test_640x480_frames_cross_processes_through_the_8mib_segment() -> None:
     result = transport_bench.run_pair(PROFILE, 'shm', 'reliable', domain_id=DOMAIN_ID, rate=10.0,

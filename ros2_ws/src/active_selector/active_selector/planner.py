@@ -33,7 +33,7 @@ class PlannerSettings:
     """Everything a strategy needs beyond the estimate (see body_schema.acquisition).
 
     Defaults chosen by measurement with the MAP estimator, 20 seeds x 50 iterations
-    (``python -m tools.bench_acquisition study --sweep al|ucsal|ccsal``; README, active_selector):
+    (``python -m tools.bench_acquisition study --sweep al|ucsal|ccsal``; docs/selector.md):
     v-optimality with the occlusion-discounted gain and the geometric visibility prior
     (``--sweep visibility``); the paper's C0 / eta with a-optimality and the flat prior
     (``occlusion_mode='paper', criterion='a_optimal', occlusion_prior='flat'``) is the baseline.

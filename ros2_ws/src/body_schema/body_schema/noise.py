@@ -142,7 +142,7 @@ class PoseDependentNoise(_Base):
 
     Units: ``a_pos`` [m^2/m^2], ``b_pos`` [m^2/deg^2], ``a_rot`` [rad^2/m^2],
     ``b_rot`` [rad^2/deg^2], floors in [m^2] and [rad^2]. Defaults are fitted to the
-    simulator's detector (see the marker_detector accuracy study in the README).
+    simulator's detector (see the accuracy study in the marker_detector README).
     """
 
     a_pos: float = 2.1e-5

@@ -5,3 +5,5 @@ Pure modules (never import rclpy): :mod:`.contract` (topics and their QoS), :mod
 vocabulary and the estimator's status keys) and :mod:`.parameters` (parameters described on
 settings dataclasses). :mod:`.node_util` holds the helpers that need rclpy.
 """
+
+__all__: list[str] = []  # nothing re-exported: import the modules

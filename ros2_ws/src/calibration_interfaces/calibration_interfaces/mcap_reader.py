@@ -38,6 +38,9 @@ from mcap.writer import CompressionType, Writer
 import yaml
 from mcap_ros2.decoder import DecoderFactory
 
+__all__ = ['INFINITE_NS', 'MAGIC', 'BagError', 'QosOffer', 'parse_offered_qos', 'RawMessage', 'TopicSummary',
+           'BagSummary', 'summary', 'recording_metadata', 'read_raw', 'read_messages', 'COMPRESSIONS', 'recover']
+
 #: rmw's RMW_DURATION_INFINITE (2^63 - 1 ns), written as {sec: 9223372036, nsec: 854775807}.
 INFINITE_NS = 2**63 - 1
 

@@ -4,9 +4,12 @@ A settings field becomes a ROS parameter when it is declared with :func:`setting
 default is the parameter's default (its Python type is the parameter's type, so write ``0.05``,
 not ``0``), and the description, range and allowed values sit next to it. The node declares its
 parameters from the dataclass (:func:`calibration_interfaces.node_util.declare_settings`) and the
-README's parameter tables are checked against :func:`markdown_table`, so each parameter has one
-default, one description and one range.
+documentation's parameter tables (README and docs pages, between ``<!-- parameters: ... -->``
+markers) are checked against :func:`markdown_table`, so each parameter has one default, one
+description and one range.
 
+Examples
+--------
 >>> from dataclasses import dataclass
 >>> @dataclass(frozen=True)
 ... class Demo:
@@ -145,7 +148,7 @@ def _cell(value: Any) -> str:
 
 
 def markdown_table(*settings: type) -> str:
-    """The parameter table of one node's settings dataclasses, as the READMEs show it.
+    """The parameter table of one node's settings dataclasses, as the documentation shows it.
 
     Columns: parameter, default, range or choices, description.
     """
@@ -190,8 +193,8 @@ def update_tables(text: str) -> str:
     """``text`` with every generated parameter table rewritten from its settings classes.
 
     A table sits between ``<!-- parameters: pkg.module:Class, ... -->`` and
-    ``<!-- /parameters -->``; :func:`markdown_table` of the listed classes replaces it. A README
-    is up to date when this returns it unchanged (the test suite checks every README).
+    ``<!-- /parameters -->``; :func:`markdown_table` of the listed classes replaces it. A page
+    is up to date when this returns it unchanged (the test suite checks the READMEs and docs/).
     """
     def render(m: re.Match[str]) -> str:
         classes = [_resolve(r) for r in m.group(2).split(',')]

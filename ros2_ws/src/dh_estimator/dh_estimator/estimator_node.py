@@ -48,7 +48,7 @@ Declared from :mod:`dh_estimator.node_settings` (robot, initial guess, files),
 :class:`calibration_interfaces.noise.NoiseSettings` (``noise_model``: ``pose_dependent`` takes the
 covariance of ``/hand_pose``, ``constant`` the CN baseline), :class:`dh_estimator.estimator.EstimatorSettings`
 (filter) and :class:`dh_estimator.pairing.PairingSettings` (which observation is an attempt); the
-README's table lists them with defaults and ranges. ``config/estimator.yaml`` sets a run's values.
+table of docs/nodes/estimator.md lists them with defaults and ranges. ``config/estimator.yaml`` sets a run's values.
 """
 from __future__ import annotations
 

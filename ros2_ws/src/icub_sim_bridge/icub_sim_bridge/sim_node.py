@@ -47,7 +47,7 @@ Declared (read-only) from :class:`icub_sim_bridge.settings.SimSettings`: robot, 
 (``true_dh_file``: any DH file of :mod:`calibration_interfaces.dh_file`, e.g. the estimator's
 exported ``calibrated_dh.yaml``; ``perturb_seed``), a change of that robot mid-run
 (``body_change``, ``body_change_at_command``), timing, cameras, image degradation and
-markers. The README's table lists them with defaults and ranges; ``config/sim.yaml`` sets a
+markers. docs/nodes/sim.md lists them with defaults and ranges; ``config/sim.yaml`` sets a
 run's values.
 """
 from __future__ import annotations

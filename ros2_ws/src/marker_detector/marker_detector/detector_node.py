@@ -35,7 +35,7 @@ Declared from :class:`marker_detector.detector_node.DetectorNodeSettings` (robot
 :class:`~calibration_interfaces.noise.PoseDependentSettings` (``noise_model``: ``pose_dependent``
 | ``constant``, and their coefficients: by default the robot description's fitted law) and
 :class:`marker_detector.detection.DetectorConfig`
-(detection and gating). The README's table lists them with defaults and ranges;
+(detection and gating). docs/nodes/detector.md lists them with defaults and ranges;
 ``calibration_bringup/config/detector.yaml`` sets a run's values.
 use_sim_time (bool, built in): stamps come from the image headers anyway.
 

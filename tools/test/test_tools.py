@@ -1,0 +1,145 @@
+"""Every module of tools/ is a maintained tool: a ``--help``, a section in docs/tools.md, and a run.
+
+The runs use small settings (a few iterations, one seed) and check what each tool prints: the
+table its documentation shows, with the rows it promises. Tools with a test file of their own
+(detector_accuracy, error_replay, fit_noise, seed_study, transport_bench; fault_table through
+tests/test_faults.py; detector_bench and sim_bench through test_readme_tables.py) are only
+checked here for ``--help`` and their docs section.
+"""
+from __future__ import annotations
+
+import importlib
+import json
+import re
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+TOOLS = sorted(p.stem for p in (ROOT / 'tools').glob('*.py') if p.stem != '__init__')
+DOCS = ROOT / 'docs' / 'tools.md'
+
+
+def _rows(text: str, header_start: str) -> list[list[str]]:
+    """Cells of the Markdown table whose header line starts with ``header_start``."""
+    lines = text.splitlines()
+    i = next(k for k, ln in enumerate(lines) if ln.startswith(header_start))
+    rows = []
+    for ln in lines[i + 2:]:
+        if not ln.startswith('|'):
+            break
+        rows.append([c.strip() for c in ln.strip().strip('|').split('|')])
+    return rows
+
+
+def test_the_tools_are_found() -> None:
+    assert {'bench', 'selector_study', 'seed_study', 'bench_acquisition'} <= set(TOOLS)
+
+
+@pytest.mark.parametrize('name', TOOLS)
+def test_every_tool_answers_help(name: str, capsys: pytest.CaptureFixture[str]) -> None:
+    module = importlib.import_module(f'tools.{name}')
+    with pytest.raises(SystemExit) as stop:
+        module.main(['--help'])
+    assert stop.value.code == 0
+    assert 'usage:' in capsys.readouterr().out
+
+
+@pytest.mark.parametrize('name', TOOLS)
+def test_every_tool_has_a_section_in_the_docs(name: str) -> None:
+    # docs/tools.md: one "## `tools.<name>` {#<name>}" section per module (other pages link to the anchor).
+    assert re.search(rf'^## `tools\.{name}` \{{#{name}\}}$', DOCS.read_text(), re.M), name
+
+
+def test_the_docs_list_no_tool_that_is_gone() -> None:
+    listed = set(re.findall(r'^## `tools\.(\w+)`', DOCS.read_text(), re.M))
+    assert listed == set(TOOLS)
+
+
+def test_kinematics_bench_measures_every_row() -> None:
+    from tools import kinematics_bench
+
+    rows = _rows(kinematics_bench.main(['--scale', '0.01']), '| operation |')
+    assert [r[0] for r in rows] == [
+        'batched FK, 1000 configurations', 'pose Jacobian w.r.t. 28 DH parameters',
+        'EKF update (paper: 1 linearisation)', 'EKF update, iterated (5 linearisations)',
+        'acquisition cost, one evaluation (50 occlusion samples)', 'AL selection, DIRECT-L, 2000 evaluations']
+    assert all(float(r[1].split()[0]) > 0 for r in rows)
+
+
+def test_map_bench_times_each_size_and_window() -> None:
+    from tools import map_bench
+
+    rows = _rows(map_bench.main(['--sizes', '3', '6', '--repeats', '2']), '| MAP update after N')
+    assert [r[0] for r in rows] == ['3 (default: window 100)', '6 (default: window 100)',
+                                    '3 (all kept: window 0)', '6 (all kept: window 0)']
+    assert all(float(r[1]) > 0 for r in rows)
+
+
+def test_bench_writes_each_section_and_refuses_an_unknown_name(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                               capsys: pytest.CaptureFixture[str]) -> None:
+    from tools import bench
+
+    assert bench.main(['no_such_bench']) == 2
+    monkeypatch.setattr(bench, 'BENCHMARKS', {'dh_estimator': ('tools.map_bench', ['--sizes', '2', '--repeats', '1'])})
+    assert bench.main(['--output', str(tmp_path)]) == 0
+    written = (tmp_path / 'dh_estimator.md').read_text()
+    assert written.startswith('## dh_estimator') and written in capsys.readouterr().out
+
+
+def test_acquisition_bench_compares_every_criterion_mode_and_strategy() -> None:
+    from tools import acquisition_bench
+
+    text = acquisition_bench.main(['--seeds', '1', '--iterations', '4', '--every', '2', '--max-evals', '20'])
+    rows = _rows(text, '| criterion |')
+    assert {(r[0], r[1], r[2]) for r in rows} == {(c, o, s) for c in ('a_optimal', 'v_optimal')
+                                                  for o in ('paper', 'gain') for s in ('al', 'ucsal', 'ccsal')}
+    assert all(int(r[3]) == 2 for r in rows)  # states before selections 1 and 3 of 4
+
+
+def test_loop_bench_reports_the_budget_of_a_short_run() -> None:
+    from tools import loop_bench
+
+    text = loop_bench.main(['--iterations', '2'])
+    assert 'medians over 2 AL iterations' in text
+    rows = dict((r[0], r[1]) for r in _rows(text, '| step |'))
+    assert float(rows['move to target (sim, 30 deg/s)'].split()[0]) > 0
+    assert rows['compute / move'].endswith('%')
+
+
+def test_selector_study_prints_a_result_per_run(capsys: pytest.CaptureFixture[str]) -> None:
+    from tools import selector_study
+
+    assert selector_study.main(['--seeds', '1', '--iterations', '3']) == 0
+    result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert result['args']['iterations'] == 3
+    assert result['movement_deg'] > 0 and 0 <= result['discarded'] <= 3
+
+
+def test_estimator_study_compares_both_estimators_and_writes_its_summary(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from tools import estimator_study
+
+    assert estimator_study.main(['--seeds', '1', '--iterations', '3', '--output', str(tmp_path)]) == 0
+    rows = _rows(capsys.readouterr().out, '| estimator |')
+    assert [r[0] for r in rows] == ['map', 'ekf']
+    assert [r[0] for r in _rows((tmp_path / 'summary.md').read_text(), '| estimator |')] == ['map', 'ekf']
+    assert len(json.loads((tmp_path / 'runs.json').read_text())) == 2
+
+
+def test_map_study_consistency_scores_map_and_ekf(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from tools import map_study
+
+    assert map_study.main(['consistency', '--seeds', '2', '--observations', '15', '--output', str(tmp_path)]) == 0
+    rows = _rows(capsys.readouterr().out, '| estimator |')
+    assert [r[0] for r in rows] == ['MAP', 'EKF (paper, 1 linearisation)']
+    assert list(tmp_path.glob('*.json'))
+
+
+def test_visibility_fit_bins_every_rendered_configuration(capsys: pytest.CaptureFixture[str]) -> None:
+    from tools import visibility_fit
+
+    assert visibility_fit.main(['--seeds', '1', '--configs', '10']) == 0
+    out = capsys.readouterr().out
+    assert 'best fit:' in out
+    assert sum(int(r[1]) for r in _rows(out, '| predicted |')) == 10

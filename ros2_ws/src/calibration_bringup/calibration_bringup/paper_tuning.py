@@ -18,7 +18,9 @@ run (docs/paper_fidelity.md):
   paper's two metrics, each on a log scale so neither unit dominates and one diverged run does
   not decide); lowest wins, ties to the earlier grid point.
 * Stages run in this order, each with the choices of the ones before and the starting values
-  (:data:`START`) for the rest:
+  (:data:`START`) for the rest. Where a stage's choice sits on the edge of a geometric grid axis
+  (stages ``law``, ``cn``, ``occlusion``), the search walks on along that axis one step at a time
+  (:func:`next_beyond`), the other constants at their choice, while the next point wins:
 
   1. ``law``: noise law ``a``, ``b`` and the process-noise fraction ``q_fraction`` (``Q`` as a
      fraction of the initial covariance's diagonal), on **R** (random selection does not depend
@@ -56,7 +58,7 @@ from .experiment import ExperimentConfig, read_rows, run_experiment
 from .systems import PAPER_TUNED, paper_system
 
 __all__ = ['START', 'STAGES', 'SEED_BASE', 'Stage', 'PointResult', 'objective', 'summarise', 'choose',
-           'run_tuning', 'main']
+           'next_beyond', 'run_tuning', 'main']
 
 #: Seed base of the tuning repetitions (the reports use 0 .. 49).
 SEED_BASE = 1000
@@ -80,12 +82,38 @@ class Stage:
         The points: constants (keys of :data:`PAPER_TUNED`) and their values.
     constant_noise : bool
         Run the points with the estimator's CN model (R has no CN method of its own).
+    extend : bool
+        Whether a choice on the edge of the grid is followed beyond it (:func:`next_beyond`).
     """
 
     name: str
     methods: tuple[str, ...]
     grid: tuple[dict[str, float], ...]
     constant_noise: bool = False
+    extend: bool = True
+
+    def axes(self) -> dict[str, list[float]]:
+        """Each constant's grid values, ascending."""
+        return {k: sorted({p[k] for p in self.grid if k in p}) for k in dict.fromkeys(k for p in self.grid for k in p)}
+
+
+def next_beyond(stage: Stage, choice: Mapping[str, float], key: str) -> dict[str, float] | None:
+    """The point one geometric step beyond ``choice`` along axis ``key`` if it sits on an end of
+    that axis (the ratio of the axis's two outermost positive values), else None.
+
+    A lower end at 0 is a true end (no process noise, no penalty): nothing lies beyond it. A
+    point already beyond the grid (an earlier step) counts as on the edge.
+    """
+    values = stage.axes().get(key, [])
+    positive = [v for v in values if v > 0]
+    if key not in choice or len(positive) < 2:
+        return None
+    v = choice[key]
+    if v >= positive[-1]:
+        return {**choice, key: float(f'{v * positive[-1] / positive[-2]:.12g}')}
+    if v <= positive[0] and values[0] > 0:
+        return {**choice, key: float(f'{v * positive[0] / positive[1]:.12g}')}
+    return None
 
 
 def _grid(**axes: Sequence[float]) -> tuple[dict[str, float], ...]:
@@ -102,8 +130,9 @@ STAGES: tuple[Stage, ...] = (
                                q_fraction=(0.0, 1e-5, 1e-4, 1e-3))),
     Stage('cn', ('R',), _grid(cn_sigma=(3e-4, 1e-3, 3e-3, 1e-2, 3e-2)), constant_noise=True),
     Stage('occlusion', ('AL',), _grid(penalty_a=(0.0, 1e-3, 1e-2, 1e-1), length_scale=(0.05, 0.1, 0.2, 0.5))),
-    Stage('search', ('AL',), _grid(max_evals=(250, 1000, 4000))),
-    Stage('movement', ('UCSAL', 'CCSAL'), _grid(gamma=(1e-5, 1e-4, 1e-3, 1e-2)) + _grid(delta=(0.1, 0.2, 0.3, 0.5))),
+    Stage('search', ('AL',), _grid(max_evals=(250, 1000, 4000)), extend=False),
+    Stage('movement', ('UCSAL', 'CCSAL'), _grid(gamma=(1e-5, 1e-4, 1e-3, 1e-2)) + _grid(delta=(0.1, 0.2, 0.3, 0.5)),
+          extend=False),
 )
 
 #: How far UCSAL's and CCSAL's errors may be above AL's at their chosen constant (stage movement).
@@ -268,6 +297,20 @@ def run_tuning(args: argparse.Namespace, stream: TextIO = sys.stderr) -> dict[st
                 results.append(al)
                 reference = al.methods['AL']
             choice = choose(stage, mine, reference)
+            for key in stage.axes() if stage.extend else ():
+                # A choice on the edge of a geometric axis: walk on along that axis, the other
+                # constants at their choice, while the next point wins (a tie keeps the choice).
+                while (step := next_beyond(stage, choice, key)) is not None:
+                    beyond = _run_point(stage, step, values, args, stream)
+                    results.append(beyond)
+                    incumbent = next(r for r in mine if r.point == choice)
+                    mine.append(beyond)
+                    won = choose(stage, [incumbent, beyond]) == step
+                    stream.write(f'paper_tuning: stage {stage.name}: {choice} on the edge of {key}; {step} '
+                                 f'{"wins" if won else "does not win"}\n')
+                    if not won:
+                        break
+                    choice = step
             values.update(choice)
             stream.write(f'paper_tuning: stage {stage.name} chose {choice} '
                          f'({time.monotonic() - t0:.0f} s so far)\n')

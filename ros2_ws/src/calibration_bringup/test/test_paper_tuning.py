@@ -81,3 +81,17 @@ def test_a_dry_run_of_the_whole_procedure_writes_its_record(tmp_path: Path, monk
     assert '## Stage `law` (R)' in text and '| `q_fraction` |' in text
     # Resuming costs nothing: every point's runs are finished.
     assert pt.run_tuning(args) == chosen
+
+
+def test_a_choice_on_the_grids_edge_is_followed_beyond_it() -> None:
+    law = pt.STAGES[0]
+    assert law.axes()['noise_a'] == [1e-5, 1e-4, 1e-3, 1e-2]
+    inside = {'noise_a': 1e-4, 'noise_b': 1e-7, 'q_fraction': 1e-4}
+    assert all(pt.next_beyond(law, inside, k) is None for k in inside)
+    top = {**inside, 'noise_b': 1e-6}
+    assert pt.next_beyond(law, top, 'noise_b') == {**inside, 'noise_b': 1e-5}
+    assert pt.next_beyond(law, {**inside, 'noise_b': 1e-5}, 'noise_b') == {**inside, 'noise_b': 1e-4}
+    assert pt.next_beyond(law, {**inside, 'noise_a': 1e-5}, 'noise_a') == {**inside, 'noise_a': 1e-6}
+    # No process noise is a true end: nothing lies below 0.
+    assert pt.next_beyond(law, {**inside, 'q_fraction': 0.0}, 'q_fraction') is None
+    assert not pt.STAGES[3].extend and not pt.STAGES[4].extend     # the budget and the trade-off

@@ -32,7 +32,7 @@ demo: setup   # `make demo VIZ=1`: with the live 3D view in the browser
 bench: setup
 	$(PY) -m tools.bench
 
-# The comparison on a local Ray runtime (EXPERIMENT_ARGS='--address auto --jobs 16' for a cluster).
+# The comparison on a local Ray runtime (EXPERIMENT_ARGS='--address HEAD:6379 --jobs 16' for a cluster: README).
 experiment: setup
 	$(PY) -m calibration_bringup.experiment --system ours $(EXPERIMENT_ARGS)
 

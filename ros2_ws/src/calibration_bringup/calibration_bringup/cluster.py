@@ -23,6 +23,7 @@ import os
 import re
 import socket
 import sys
+import time
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
@@ -230,7 +231,8 @@ def check_nodes(record: bool, options: Mapping[str, Any], timeout: float = CHECK
     Raises
     ------
     NodeEnvironmentError
-        Naming each node whose check failed and why.
+        At the first failed check, naming each node whose check had failed by then and why (the
+        checks still running are cancelled).
     """
     import ray
     from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
@@ -240,15 +242,23 @@ def check_nodes(record: bool, options: Mapping[str, Any], timeout: float = CHECK
     task = ray.remote(num_cpus=0, max_retries=0)(check_node)
     refs = {task.options(scheduling_strategy=NodeAffinitySchedulingStrategy(n['NodeID'], soft=False),
                          **options).remote(record): n for n in nodes}
-    ready, pending = ray.wait(list(refs), num_returns=len(refs), timeout=timeout) if refs else ([], [])
-    passed, problems = [], []
-    for ref in ready:
-        node = refs[ref]
-        try:
-            passed.append(ray.get(ref))
-        except ray.exceptions.RayError as exc:
-            where = ', '.join(filter(None, (node.get('NodeManagerHostname'), node.get('NodeManagerAddress'))))
-            problems.append(NodeProblem(node['NodeID'], where, root_cause(exc)))
+    passed: list[NodeInfo] = []
+    problems: list[NodeProblem] = []
+    pending, deadline = list(refs), time.monotonic() + timeout
+    # A broken node fails within seconds, while a sound one is still importing: report at the first
+    # failure (with any other that has failed by then), not after every node answered.
+    while pending and not problems and time.monotonic() < deadline:
+        ready, pending = ray.wait(pending, num_returns=1, timeout=max(0.0, deadline - time.monotonic()))
+        if ready and len(pending):
+            more, pending = ray.wait(pending, num_returns=len(pending), timeout=0)
+            ready += more
+        for ref in ready:
+            try:
+                passed.append(ray.get(ref))
+            except ray.exceptions.RayError as exc:
+                node = refs[ref]
+                where = ', '.join(filter(None, (node.get('NodeManagerHostname'), node.get('NodeManagerAddress'))))
+                problems.append(NodeProblem(node['NodeID'], where, root_cause(exc)))
     for ref in pending:
         ray.cancel(ref, force=True)
     if problems:

@@ -38,7 +38,7 @@ docs: setup
 bench: setup
 	$(PY) -m tools.bench
 
-# The comparison on a local Ray runtime (EXPERIMENT_ARGS='--address auto --jobs 16' for a cluster).
+# The comparison on a local Ray runtime (EXPERIMENT_ARGS='--address HEAD:6379 --jobs 16' for a cluster: README).
 experiment: setup
 	$(PY) -m calibration_bringup.experiment --system ours $(EXPERIMENT_ARGS)
 

@@ -6,7 +6,7 @@ Usage::
     python -m calibration_bringup.experiment --system paper   # the paper's system, same seeds and robots
     python -m calibration_bringup.experiment --quick          # 7 methods x 3 repetitions x 20 iterations
     python -m calibration_bringup.experiment --methods AL CCSAL --repetitions 3 --iterations 10
-    python -m calibration_bringup.experiment --address auto --jobs 16      # on a running Ray cluster
+    python -m calibration_bringup.experiment --address HEAD:6379 --jobs 16  # on a running Ray cluster
     python -m calibration_bringup.experiment_figures results/experiment-ours     # re-plot only
 
 Methods (docs/architecture.md section 5): ``R``, ``AL``, ``UCSAL``, ``CCSAL`` with the pose-dependent noise
@@ -27,8 +27,10 @@ Every method of a repetition shares all three; they are recorded in each run's C
 
 Execution: one Ray task per run (``num_cpus=1``), at most ``--jobs`` in flight. Without
 ``--address`` the command starts a local Ray runtime of ``--jobs`` CPUs for its own use;
-``--address auto`` or ``--address ray://host:10001`` submits to an existing cluster whose nodes
-have this workspace installed. Each task runs one fresh graph (SimNode, DetectorNode,
+``--address host:6379`` or ``--address ray://host:10001`` submits to an existing cluster whose nodes
+have this workspace installed; the tasks carry the environment their runs read, every node is
+checked first and runs failing on one node for one environmental cause stop the driver
+(:mod:`calibration_bringup.cluster`). Each task runs one fresh graph (SimNode, DetectorNode,
 EstimatorNode, SelectorNode, optionally the MCAP recorder, and a probe) on a
 SingleThreadedExecutor with its own ``Context`` and a ``ROS_DOMAIN_ID`` that the driver leases
 to it from a pool of ``--jobs`` ids, so no two runs in flight share one on any node. After every
@@ -76,6 +78,7 @@ from typing import Any, Iterator, Mapping, Sequence, TextIO
 
 import numpy as np
 
+from . import cluster
 from .graph import NODES, InProcessGraph, default_parameters, merge_parameters, recorder_available, ros_session
 from .systems import SYSTEMS
 
@@ -729,7 +732,14 @@ def _run_all(todo: list[RunSpec], config: ExperimentConfig, record: bool, hashes
     from tqdm import tqdm
 
     root = Path(config.output)
-    task = ray.remote(num_cpus=1, max_retries=0, scheduling_strategy='SPREAD')(execute_run)
+    # Workers inherit their node's `ray start` environment, not this one: the tasks carry theirs.
+    options = cluster.task_options()
+    task = ray.remote(num_cpus=1, max_retries=0, scheduling_strategy='SPREAD', **options)(execute_run)
+    _, silent = cluster.check_nodes(record, options)    # raises naming a node that cannot run runs
+    if silent:
+        stream.write(f'experiment: Ray node(s) {", ".join(silent)} did not answer the environment check within '
+                     f'{cluster.CHECK_TIMEOUT:.0f} s; their runs go ahead unchecked\n')
+    fail_fast = cluster.FailFast()
     shared = str(root.resolve()) if config.shared else None
     free, waiting = domain_ids(config), deque(todo)
     in_flight: dict[Any, tuple[RunSpec, int]] = {}
@@ -746,10 +756,12 @@ def _run_all(todo: list[RunSpec], config: ExperimentConfig, record: bool, hashes
             for ref in ready:
                 spec, domain = in_flight.pop(ref)
                 free.append(domain)
+                cause: str | None = None
                 try:
                     result: RunResult = ray.get(ref)
-                except ray.exceptions.RayError as exc:   # the worker or its node died
+                except ray.exceptions.RayError as exc:   # the worker or its node died, or never ran the task
                     result = RunResult(spec, None, f'{type(exc).__name__}: {exc}', None, None, '', '', domain, 0.0)
+                    cause = cluster.root_cause(exc)
                 _store(result, root, hashes[spec.method])
                 if result.error is not None:
                     outcome.failures.append(f'{spec.label}: {result.error} (log: {spec.path(root, ".log")})')
@@ -761,8 +773,14 @@ def _run_all(todo: list[RunSpec], config: ExperimentConfig, record: bool, hashes
                 outcome.results.append(replace(result, log=None, mcap=None))
                 bar.update(1)
                 tqdm.write(f'{spec.label}: {note}', file=stream)
+                if result.error is not None:
+                    stop = fail_fast.record(result.node_id, result.host, cause or result.error)
+                    if stop is not None and not result.node_id:
+                        cluster.check_nodes(record, options)    # names the node, if the check fails there
+                    if stop is not None:
+                        raise stop
     except BaseException:
-        # Ctrl-C (or a failure to write): kill the runs in flight; nothing they did is written.
+        # Ctrl-C, a failure to write or a failing node: kill the runs in flight; nothing they did is written.
         for ref in in_flight:
             ray.cancel(ref, force=True)
         bar.close()
@@ -781,6 +799,9 @@ def run_experiment(config: ExperimentConfig, stream: TextIO = sys.stderr) -> Exp
     ValueError
         If the output directory holds finished runs made with other settings (unless
         ``config.force_new``).
+    calibration_bringup.cluster.NodeEnvironmentError
+        If a Ray node cannot run runs (its check failed, or runs kept failing there for one
+        environmental cause); it names the node and the cause.
     """
     root = Path(config.output)
     root.mkdir(parents=True, exist_ok=True)
@@ -939,6 +960,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError as exc:
         print(f'experiment: {exc}', file=sys.stderr)
         return 2
+    except cluster.NodeEnvironmentError as exc:
+        print(f'experiment: {exc}', file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         return 130
     failed = len(outcome.failures)

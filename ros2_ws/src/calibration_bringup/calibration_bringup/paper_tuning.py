@@ -13,30 +13,32 @@ run (docs/paper_fidelity.md):
 
 * Tuning seeds: repetitions of seed base 1000 (``SeedSequence(1000 + r)``); the reported
   experiments use seed base 0 with 50 repetitions, so no robot, guess or selector seed is shared.
-* Objective of stages ``law``, ``cn``, ``occlusion``: the mean over the tuning runs of
+* Objective of stages ``law``, ``cn``, ``kernel``, ``penalty``, ``search``: the mean over the tuning runs of
   ``ln(position error [mm]) + ln(orientation error [deg])`` after the last iteration (the
   paper's two metrics, each on a log scale so neither unit dominates and one diverged run does
   not decide); lowest wins, ties to the earlier grid point.
 * Stages run in this order, each with the choices of the ones before and the starting values
   (:data:`START`) for the rest. Where a stage's choice sits on the edge of a geometric grid axis
-  (stages ``law``, ``cn``, ``occlusion``), the search walks on along that axis one step at a time
+  (stages ``law``, ``cn``, ``kernel``, ``penalty``), the search walks on along that axis one step at a time
   (:func:`next_beyond`), the other constants at their choice, while the next point wins:
 
   1. ``law``: noise law ``a``, ``b`` and the process-noise fraction ``q_fraction`` (``Q`` as a
      fraction of the initial covariance's diagonal), on **R** (random selection does not depend
      on the selector, so the estimator is not tuned towards any active method);
   2. ``cn``: the CN constant ``cn_sigma`` at the chosen ``Q``, on R with the constant model;
-  3. ``occlusion``: the cost's penalty ``a`` (its ``b`` stays at 10 / m) and the occlusion
-     kernel's width together (both decide how AL avoids where the hand is not seen), on **AL**;
-  4. ``search``: DIRECT's evaluation budget per selection, on AL: the smallest budget whose
-     objective is within :data:`BUDGET_TOLERANCE` of the best budget's;
-  5. ``movement``: UCSAL's ``gamma`` and CCSAL's ``delta``, each the value with the least mean
+  3. ``kernel``: the occlusion kernel's width, on **AL** (no penalty yet);
+  4. ``penalty``: the cost's penalty ``a`` (its ``b`` stays at 10 / m), on AL;
+  5. ``search``: DIRECT's evaluation budget per selection (up to 1000: each AL run already takes
+     10-20 s of a core at 1000), on AL: the smallest budget whose objective is within
+     :data:`BUDGET_TOLERANCE` of the best budget's;
+  6. ``movement``: UCSAL's ``gamma`` and CCSAL's ``delta``, each the value with the least mean
      movement among those whose mean final position and orientation errors stay within
      ``1.25x`` AL's on the tuning seeds (the paper's "similar accuracy" operating point; if none
      does, the one with the lowest objective).
 
 Each grid point is an experiment (:mod:`calibration_bringup.experiment`) in
-``<output>/<stage>/<point>/``, resumable like any experiment: the command always walks the whole
+``<output>/points/<methods>/<every constant>/`` (a configuration two stages share is run once),
+resumable like any experiment: the command always walks the whole
 procedure, and points already finished cost nothing; the record of every point and
 the choices go to ``<output>/tuning.md`` and ``tuning.json`` (``docs/results/paper/`` keeps
 the copy that :data:`calibration_bringup.systems.PAPER_TUNED` must equal: a test checks it).
@@ -58,7 +60,7 @@ from .experiment import ExperimentConfig, read_rows, run_experiment
 from .systems import PAPER_TUNED, paper_system
 
 __all__ = ['START', 'STAGES', 'SEED_BASE', 'Stage', 'PointResult', 'objective', 'summarise', 'choose',
-           'next_beyond', 'run_tuning', 'main']
+           'next_beyond', 'point_dir', 'run_tuning', 'main']
 
 #: Seed base of the tuning repetitions (the reports use 0 .. 49).
 SEED_BASE = 1000
@@ -129,8 +131,9 @@ STAGES: tuple[Stage, ...] = (
     Stage('law', ('R',), _grid(noise_a=(1e-5, 1e-4, 1e-3, 1e-2), noise_b=(1e-8, 1e-7, 1e-6),
                                q_fraction=(0.0, 1e-5, 1e-4, 1e-3))),
     Stage('cn', ('R',), _grid(cn_sigma=(3e-4, 1e-3, 3e-3, 1e-2, 3e-2)), constant_noise=True),
-    Stage('occlusion', ('AL',), _grid(penalty_a=(0.0, 1e-3, 1e-2, 1e-1), length_scale=(0.05, 0.1, 0.2, 0.5))),
-    Stage('search', ('AL',), _grid(max_evals=(250, 1000, 4000)), extend=False),
+    Stage('kernel', ('AL',), _grid(length_scale=(0.05, 0.1, 0.2, 0.5))),
+    Stage('penalty', ('AL',), _grid(penalty_a=(0.0, 1e-3, 1e-2, 1e-1))),
+    Stage('search', ('AL',), _grid(max_evals=(250, 500, 1000)), extend=False),
     Stage('movement', ('UCSAL', 'CCSAL'), _grid(gamma=(1e-5, 1e-4, 1e-3, 1e-2)) + _grid(delta=(0.1, 0.2, 0.3, 0.5)),
           extend=False),
 )
@@ -155,8 +158,12 @@ class PointResult:
         return ', '.join(f'{k} {v:g}' for k, v in self.point.items())
 
 
-def _point_dir(point: Mapping[str, float]) -> str:
-    return '-'.join(f'{k}={v:g}' for k, v in point.items()) or 'reference'
+def point_dir(root: Path, tuned: Mapping[str, float], methods: Sequence[str], constant_noise: bool = False) -> Path:
+    """Where the runs of ``methods`` with all the constants ``tuned`` live: named by every constant, so
+    a configuration two stages share (a stage's choice is the next stage's starting point; stage
+    ``movement`` compares with AL at the choices) is run once."""
+    name = '-'.join(f'{k}={tuned[k]:g}' for k in sorted(tuned)) + ('-cn' if constant_noise else '')
+    return root / 'points' / '+'.join(methods) / name
 
 
 def objective(position_mm: Sequence[float], orientation_deg: Sequence[float]) -> float:
@@ -235,7 +242,7 @@ def _run_point(stage: Stage, point: Mapping[str, float], values: Mapping[str, fl
     methods = stage.methods
     if stage.name == 'movement':        # gamma points run UCSAL, delta points CCSAL
         methods = ('UCSAL',) if 'gamma' in point else ('CCSAL',)
-    root = Path(args.output) / stage.name / _point_dir(point)
+    root = point_dir(Path(args.output), tuned, methods, stage.constant_noise)
     config = ExperimentConfig(repetitions=args.repetitions, iterations=args.iterations, methods=methods,
                               system='ours', jobs=args.jobs, output=root, seed_base=SEED_BASE, record=False,
                               figures=False, overrides=overrides)
@@ -292,7 +299,7 @@ def run_tuning(args: argparse.Namespace, stream: TextIO = sys.stderr) -> dict[st
             mine = [_run_point(stage, p, values, args, stream) for p in stage.grid]
             results += mine
             reference = None
-            if stage.name == 'movement':
+            if stage.name == 'movement':        # AL at the choices so far: the last stage's choice, run already
                 al = _run_point(Stage('movement-reference', ('AL',), ({},)), {}, values, args, stream)
                 results.append(al)
                 reference = al.methods['AL']

@@ -29,7 +29,7 @@ def test_the_procedure_covers_the_silent_constants_in_order() -> None:
     tuned = {k for s in pt.STAGES for p in s.grid for k in p}
     # What no stage tunes keeps its starting value: the arctan slope b (a alone scales the penalty).
     assert set(PAPER_TUNED) - tuned == {'penalty_b'} and PAPER_TUNED['penalty_b'] == pt.START['penalty_b']
-    assert [s.name for s in pt.STAGES] == ['law', 'cn', 'occlusion', 'search', 'movement']
+    assert [s.name for s in pt.STAGES] == ['law', 'cn', 'kernel', 'penalty', 'search', 'movement']
     assert pt.STAGES[0].methods == ('R',) and pt.SEED_BASE >= 1000      # never the reported seeds 0-49
 
 
@@ -94,4 +94,4 @@ def test_a_choice_on_the_grids_edge_is_followed_beyond_it() -> None:
     assert pt.next_beyond(law, {**inside, 'noise_a': 1e-5}, 'noise_a') == {**inside, 'noise_a': 1e-6}
     # No process noise is a true end: nothing lies below 0.
     assert pt.next_beyond(law, {**inside, 'q_fraction': 0.0}, 'q_fraction') is None
-    assert not pt.STAGES[3].extend and not pt.STAGES[4].extend     # the budget and the trade-off
+    assert not pt.STAGES[4].extend and not pt.STAGES[5].extend     # the budget and the trade-off

@@ -22,7 +22,6 @@ from typing import Any
 import numpy as np
 import yaml
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial.transform import Rotation
 
 from . import kinematics
 
@@ -577,12 +576,25 @@ def _eyes(e: Any, h0: NDArray[np.float64], where: str, scale: float) -> EyeChain
     return EyeChain(base=_fixed_chain(h0, torso), links=links, head_joints=heads, head_pose=head)
 
 
+def rpy_matrix(rpy: ArrayLike) -> NDArray[np.float64]:
+    """Rotation of extrinsic x-y-z angles [rad] (URDF's rpy): ``Rz(yaw) Ry(pitch) Rx(roll)``, (3, 3).
+
+    Written out rather than through scipy, whose import alone costs the launcher's validation of a
+    description most of its time.
+    """
+    r, p_, y = np.asarray(rpy, dtype=float)
+    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p_), np.sin(p_), np.cos(y), np.sin(y)
+    return np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+                     [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+                     [-sp, cp * sr, cp * cr]])
+
+
 def _pose(entry: Any, where: str, scale: float) -> NDArray[np.float64]:
     """``{xyz, rpy}`` (rpy: extrinsic x-y-z, the file's angle unit) -> (4, 4)."""
     if not isinstance(entry, dict):
         raise RobotDescriptionError(f'{where}: must be a mapping with xyz and rpy')
     t = np.eye(4)
-    t[:3, :3] = Rotation.from_euler('xyz', _array(entry, 'rpy', (3,), where + '.') * scale).as_matrix()
+    t[:3, :3] = rpy_matrix(_array(entry, 'rpy', (3,), where + '.') * scale)
     t[:3, 3] = _array(entry, 'xyz', (3,), where + '.')
     return t
 
@@ -708,9 +720,10 @@ def _markers(m: Any, where: str, scale: float) -> tuple[str, float, tuple[Marker
             raise RobotDescriptionError(f'{w}id: must be a unique non-negative integer, got {mid}')
         ids.add(mid)
         t = np.eye(4)
-        t[:3, :3] = Rotation.from_euler('xyz', rpy).as_matrix()
+        t[:3, :3] = rpy_matrix(rpy)
         t[:3, 3] = xyz
         out.append(MarkerPlacement(str(mk.get('name', f'marker{mid}')), mid, t))
     if not out:
         raise RobotDescriptionError(f'{where}markers: at least one marker is needed')
     return str(m.get('dictionary', 'DICT_4X4_50')), side, tuple(out)
+

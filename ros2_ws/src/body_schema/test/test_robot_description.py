@@ -92,7 +92,7 @@ def test_icub_cameras_are_its_eyes_and_its_torso_is_obstacles():
     np.testing.assert_allclose(icub.obstacles[0].pose[:3, 3], [0.01, 0.0, 0.05])
     assert icub.obstacle_names == ('chest', 'hips', 'head')          # the head behind the eyes too
     assert icub.collision.margin == 0.02 and icub.collision.link_margin == 0.02
-    assert icub.collision.allowed_pairs == (('r_shoulder_yaw_link', 'chest'),)
+    assert icub.collision.allowed_pairs == (('r_shoulder_yaw_link', 'chest'), ('hand', 'r_wrist_prosup_link'))
     assert icub.exports == ('ikin',) and icub.torso.shape == (3, 4)
     # base = H0 times the blocked torso at 0
     from body_schema.kinematics import forward_kinematics

@@ -125,3 +125,4 @@ def write_pose_list(path: str | Path, model: ArmModel, positions: ArrayLike,
     return p
 
 
+

@@ -27,10 +27,10 @@ touch by construction: the first link standing on the table it is mounted on, th
 at a shoulder); :attr:`CollisionModel.auto_allowed` lists those.
 
 Library: Pinocchio (forward kinematics of the URDF, geometry placements) and Coal (formerly
-hpp-fcl; the narrow phase), chosen by measurement on this machine (README, "Collision
-checking"): all the pairs of one configuration in one C++ call, 0.12 ms for the UR5e's 82 raw
-pairs against 1.3 ms with PyBullet's per-pair closest points, and exact distances on the analytic
-case where python-fcl 0.7 was 2 cm off.
+hpp-fcl; the narrow phase), chosen by measurement on this machine (docs/real_robot_arm.md,
+"Collision checking"): all the pairs of one configuration in one C++ call, 0.12 ms for the UR5e's
+82 raw pairs against 1.3 ms with PyBullet's per-pair closest points, and exact distances on the
+analytic case where python-fcl 0.7 was 2 cm off.
 """
 from __future__ import annotations
 

@@ -8,7 +8,7 @@ otherwise the estimator's verdict at this configuration on ``/body_schema/update
 ``timeout``), feed the occlusion model, account the movement. The next selection starts on the
 first joint state after an iteration ends; a 20 Hz wall-clock step reports missing inputs and
 enforces the timeouts. After ``iterations`` iterations it logs a summary and the process exits
-with status 0. Safety (README, "Running on a real robot"): no target inside the description's
+with status 0. Safety (docs/real_robot_arm.md): no target inside the description's
 collision margins nor behind one (``collision_check``; refusals are counted in each progress
 record), poses of ``poses_file`` first, commands timed at ``speed_scale`` times
 ``max_joint_speed_deg``, and a watchdog (``stop_on_unreachable``): a target not reached within
@@ -47,8 +47,8 @@ repeat_tolerance (StrategySettings); penalty_a, penalty_b, occlusion_length_scal
 occlusion_a0, occlusion_b0, occlusion_prior ('flat' | 'geometric'), occlusion_mode ('paper' |
 'expected' | 'gain'), criterion ('a_optimal' | 'v_optimal'), box_samples (PlannerSettings);
 iterations, settle_tolerance (rad), settle_timeout (s, sim), settle_time (s, sim),
-outcome_timeout (s, sim), max_joint_speed_deg, speed_scale, stop_on_unreachable (LoopSettings); noise_model ('pose_dependent' | 'constant'),
-cn_sigma_pos, cn_sigma_rot_deg, pdn_a_pos, pdn_b_pos, pdn_a_rot, pdn_b_rot (NoiseSettings,
+outcome_timeout (s, sim), max_joint_speed_deg, speed_scale, stop_on_unreachable (LoopSettings);
+noise_model ('pose_dependent' | 'constant'), cn_sigma_pos, cn_sigma_rot_deg, pdn_a_pos, pdn_b_pos, pdn_a_rot, pdn_b_rot (NoiseSettings,
 PoseDependentSettings; the pdn_* negative by default: the robot description's fitted law).
 """
 from __future__ import annotations
@@ -145,6 +145,7 @@ class SelectorNode(Node):
         self.P: np.ndarray | None = None
         self.camera_pose: np.ndarray | None = None
         self._last_wait_report = 0.0
+        self._held = False                  # the arm held after a stop
         self._warn_once = WarnOnce(self)
         self._warn = WarnThrottled(self)
 
@@ -314,7 +315,7 @@ class SelectorNode(Node):
             self._select_and_command()
         else:
             self._report(self.loop.tick())
-        if self.loop.stopped and self.q is not None and not getattr(self, '_held', False):
+        if self.loop.stopped and self.q is not None and not self._held:
             self._held = True
             self._command(self.q, 0.0)
             self.get_logger().error(f'{self.loop.stop_reason}; the arm is held where it is and the run stops')

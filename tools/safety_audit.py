@@ -119,8 +119,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     collision = CollisionModel(load_robot(args.robot), args.margin)
     runs = [args.path] if (args.path / 'progress.jsonl').exists() else \
-        sorted((p for p in args.path.glob('seed_*') if (p / 'progress.jsonl').exists()),
-               key=lambda p: int(p.name.split('_')[1]))
+        sorted((p for p in args.path.glob('seed_*') if p.name[5:].isdigit() and (p / 'progress.jsonl').exists()),
+               key=lambda p: int(p.name[5:]))
     if not runs:
         ap.error(f'{args.path}: no run (progress.jsonl) found')
     print(table([audit_run(run, collision, args.samples) for run in runs]))

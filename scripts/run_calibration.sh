@@ -40,7 +40,17 @@ Runs one online calibration of a simulated arm (the iCub right arm by default) a
                     away from the online estimate's in any parameter (default: 1e-4)
   --viz             serve the live 3D view (calibration_viz) and print its URL
   --viz-port N      its port (default: 8080)
+  --plan-only       plan --iterations poses from the initial guess without starting any node or moving
+                    anything, write them to DIR/plan.yaml for review (with --viz: show them and the
+                    obstacles in the browser until Ctrl-C)
+  --poses FILE      visit the poses of FILE (a reviewed plan or a hand-taught pose list) first, each
+                    checked against the collision margins, before the strategy takes over
+  --speed-scale F   command the joints at F (0-1] times their speed limit (default: 1.0)
+  --margin M        collision margin [m] to the obstacles (default: the description's collision.margin)
   -h, --help        this text
+
+Before anything starts, the robot description (and a --poses file) is validated with the loader
+every node uses: a bad one exits 2 with one line naming the file and the field.
 
 Writes DIR/calibration.mcap, DIR/report.md (+ PNG plots, metrics.csv), DIR/model/ (calibrated
 DH YAML and URDF), DIR/progress.jsonl, DIR/checkpoint.npz, DIR/run.env (settings, run id, domain)
@@ -61,11 +71,12 @@ robot=icub_right_arm; strategy=al; iterations=50; seed=1; output=results/run; no
 body_change=""; body_change_at=""; camera_error=""; marker_error=""; overwrite=0; resume=""
 image_size=""; record_images=1; domain_id=""; timeout=""; viz=0; viz_port=8080
 max_timeouts=0.2; max_dh_difference=1e-4
+plan_only=0; poses=""; speed_scale=1.0; margin=""
 given=()   # run-defining options on the command line (a resumed run keeps its own)
 while [ $# -gt 0 ]; do
   case "$1" in
     --robot|--strategy|--iterations|--seed|--noise|--estimator|--body-change|--body-change-at|--image-size|\
-    --camera-error|--marker-error)
+    --camera-error|--marker-error|--poses|--speed-scale|--margin)
       need_value "$@"; given+=("$1") ;;&
     --output|--resume|--rtf|--domain-id|--timeout|--viz-port|--max-timeouts|--max-dh-difference)
       need_value "$@" ;;&
@@ -91,6 +102,10 @@ while [ $# -gt 0 ]; do
     --max-dh-difference) max_dh_difference=$2; shift 2 ;;
     --viz) viz=1; shift ;;
     --viz-port) viz_port=$2; shift 2 ;;
+    --plan-only) plan_only=1; shift ;;
+    --poses) poses=$2; shift 2 ;;
+    --speed-scale) speed_scale=$2; shift 2 ;;
+    --margin) margin=$2; shift 2 ;;
     -h|--help) usage; exit 0 ;;
     *) die "unknown option '$1' (see --help)" ;;
   esac
@@ -128,12 +143,40 @@ timeout=${timeout:-$((60 + 20 * iterations))}
 [[ "$max_timeouts" =~ ^(0(\.[0-9]*)?|1(\.0*)?|\.[0-9]+)$ ]] || die "--max-timeouts must be a fraction 0-1, got '$max_timeouts'"
 [[ "$max_dh_difference" =~ ^[0-9]*\.?[0-9]+([eE][-+]?[0-9]+)?$ ]] || \
   die "--max-dh-difference must be a non-negative number (m or rad), got '$max_dh_difference'"
+[[ "$speed_scale" =~ ^(0?\.[0-9]*[1-9][0-9]*|1(\.0*)?)$ ]] || die "--speed-scale must be a fraction in (0, 1], got '$speed_scale'"
+[ -z "$margin" ] || [[ "$margin" =~ ^(0?\.[0-9]+|0|1(\.0*)?)$ ]] || die "--margin must be a distance 0-1 (m), got '$margin'"
+[ -z "$poses" ] || [ "$plan_only" = 0 ] || die "--poses and --plan-only exclude each other"
+[[ "$speed_scale" == *.* ]] || speed_scale="$speed_scale.0"   # double parameters: '1' would be an integer
+[ -z "$margin" ] || [[ "$margin" == *.* ]] || margin="$margin.0"
 body_change_at=${body_change_at:-$(( (iterations + 1) / 2 + 1 ))}
 if [ -n "$body_change" ]; then
   [[ "$body_change_at" =~ ^[1-9][0-9]*$ ]] || die "--body-change-at must be a positive integer, got '$body_change_at'"
 else
   body_change_at=0
 fi
+# --- The robot description (and a pose list), with the loader every node uses ---------------
+repo=$(cd "$(dirname "$0")/.." && pwd)
+if ! command -v ros2 >/dev/null 2>&1 && [ -x "$repo/.venv/bin/python" ]; then
+  # This repository's venv is the install prefix (see `make setup`).
+  export PATH="$repo/.venv/bin:$PATH"
+  export AMENT_PREFIX_PATH="$repo/.venv${AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}"
+fi
+[ -z "$poses" ] || poses=$(cd "$(dirname "$poses")" 2>/dev/null && echo "$PWD/$(basename "$poses")") || \
+  die "--poses: '$poses' does not exist"
+invalid=$(python3 -m calibration_interfaces.validate --robot "$robot" ${poses:+--poses "$poses"} 2>&1 >/dev/null) || \
+  die "$(tail -n 1 <<<"$invalid")"
+if [ "$plan_only" = 1 ]; then
+  # Nothing starts and nothing moves: the poses a run would visit, from the initial guess, for review.
+  mkdir -p "$output"
+  plan_args=(--robot "$robot" --n "$iterations" --seed "$seed" --output "$output/plan.yaml")
+  [ -z "$strategy" ] || plan_args+=(--strategy "$strategy")
+  [ -z "$margin" ] || plan_args+=(--margin "$margin")
+  [ -z "$camera_error" ] || plan_args+=(--camera-prior "$camera_error")
+  [ -z "$marker_error" ] || plan_args+=(--marker-prior "$marker_error")
+  [ "$viz" = 0 ] || plan_args+=(--viz --viz-port "$viz_port")
+  exec python3 -m calibration_bringup.plan "${plan_args[@]}"
+fi
+
 # The output directory: new or empty, unless the run resumes it or the user asked to overwrite it
 # (then only what a run writes is removed, so no stale report or model sits beside the new bag).
 if [ -z "$resume" ] && [ -d "$output" ] && [ -n "$(ls -A "$output")" ]; then
@@ -143,12 +186,6 @@ if [ -z "$resume" ] && [ -d "$output" ] && [ -n "$(ls -A "$output")" ]; then
 fi
 
 # --- Where the executables and parameter files are ----------------------------------------
-repo=$(cd "$(dirname "$0")/.." && pwd)
-if ! command -v ros2 >/dev/null 2>&1 && [ -x "$repo/.venv/bin/python" ]; then
-  # This repository's venv is the install prefix (see `make setup`).
-  export PATH="$repo/.venv/bin:$PATH"
-  export AMENT_PREFIX_PATH="$repo/.venv${AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}"
-fi
 share_dir() {   # share/<pkg> of the first prefix on AMENT_PREFIX_PATH that has it
   local prefix
   IFS=: read -ra prefixes <<<"${AMENT_PREFIX_PATH:-}"
@@ -268,7 +305,7 @@ else
   bag="$output/calibration.mcap"
   {
     for var in robot strategy iterations seed noise estimator body_change body_change_at camera_error marker_error \
-               image_size record_images rtf; do
+               image_size record_images rtf poses speed_scale margin; do
       printf '%s=%q\n' "$var" "${!var}"
     done
   } >"$output/run.env"
@@ -348,10 +385,13 @@ for ((t = 0; t < 200; t++)); do
   sleep 0.1
 done
 recording_all || fail recorder "did not subscribe to the other nodes' topics within 20 s"
+safety_args=(-p "speed_scale:=$speed_scale")
+[ -z "$poses" ] || safety_args+=(-p "poses_file:=$poses")
+[ -z "$margin" ] || safety_args+=(-p "collision_margin:=$margin")
 start selector active_selector selector_node --ros-args --params-file "$config/selector.yaml" \
   -p "robot:=$robot" -p "strategy:=$strategy" -p "iterations:=$iterations" -p "seed:=$seed" -p "noise_model:=$noise" \
   -p "progress_file:=$output/progress.jsonl" -p "wait_for_recorder:=true" "${resume_args[@]}" \
-  "${extrinsics_args[@]}"
+  "${extrinsics_args[@]}" "${safety_args[@]}"
 
 # --- Wait for the selector; a node that dies fails the run ----------------------------------
 shown=0

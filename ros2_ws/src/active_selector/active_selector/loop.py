@@ -32,6 +32,8 @@ from numpy.typing import ArrayLike, NDArray
 from calibration_interfaces.outcome import Outcome
 from calibration_interfaces.parameters import setting
 
+from body_schema.acquisition import Selection
+
 from .planner import Attempt, Planner
 
 __all__ = ['Phase', 'LoopSettings', 'Iteration', 'LoopStateError', 'CalibrationLoop']
@@ -41,6 +43,7 @@ class Phase(enum.Enum):
     MOVING = 'moving'
     AWAITING_OUTCOME = 'awaiting outcome'
     DONE = 'done'
+    STOPPED = 'stopped by the watchdog'
 
 
 class LoopStateError(RuntimeError):
@@ -60,20 +63,36 @@ class LoopSettings:
         of it since the previous joint state. An estimator outcome matches the reached
         configuration within twice this.
     settle_timeout : float
-        Seconds (loop clock) to reach a target before the iteration is ``unreachable``.
+        Seconds (loop clock) beyond the commanded motion's duration to reach a target before the
+        iteration is ``unreachable``.
     settle_time : float
         Seconds the arm rests before the attempt's marker frame (match the estimator's
         ``static_window``).
     outcome_timeout : float
         Seconds after settling to get an outcome before the iteration is ``timeout``.
+    max_joint_speed_deg : float
+        The robot's joint speed limit [deg/s]: a command's ``time_from_start`` is the largest
+        joint move at ``speed_scale`` times this.
+    speed_scale : float
+        Fraction of ``max_joint_speed_deg`` the commanded motions use (0, 1].
+    stop_on_unreachable : bool
+        The watchdog: a target not reached in time stops the run (phase STOPPED; the node holds
+        the arm where it is and exits non-zero) instead of going on with the next one.
     """
 
     iterations: int = setting(50, 'Iterations (measurement attempts) of the run', (1, 100000))
     settle_tolerance: float = setting(0.002, 'Max joint error counted as arrived [rad]', (1e-6, 0.5))
-    settle_timeout: float = setting(30.0, 'Seconds (sim) to reach a target before giving up', (0.1, 1e4))
+    settle_timeout: float = setting(30.0, 'Seconds (sim) beyond the commanded duration to reach a target before '
+                                    'giving up', (0.1, 1e4))
     settle_time: float = setting(0.1, "Seconds (sim) the arm rests before the attempt image (match the "
                                  "estimator's static_window)", (0.0, 10.0))
     outcome_timeout: float = setting(5.0, 'Seconds (sim) after settling to get an outcome', (0.1, 1e4))
+    max_joint_speed_deg: float = setting(30.0, "The robot's joint speed limit [deg/s] commands are timed with "
+                                         "(the simulator's max_joint_speed_deg)", (0.1, 3600.0))
+    speed_scale: float = setting(1.0, 'Fraction of max_joint_speed_deg the commanded motions use', (0.001, 1.0))
+    stop_on_unreachable: bool = setting(True, 'Watchdog: a target not reached within settle_timeout beyond the '
+                                              'commanded duration stops the run (the arm is held where it is, the '
+                                              'node exits with status 3) instead of going on')
 
     def __post_init__(self) -> None:
         if self.iterations < 1:
@@ -83,6 +102,15 @@ class LoopSettings:
                 raise ValueError(f'{name} must be > 0, got {getattr(self, name)}')
         if self.settle_time < 0:
             raise ValueError(f'settle_time must be >= 0, got {self.settle_time}')
+        if not 0 < self.speed_scale <= 1:
+            raise ValueError(f'speed_scale must be in (0, 1], got {self.speed_scale}')
+        if not self.max_joint_speed_deg > 0:
+            raise ValueError(f'max_joint_speed_deg must be > 0, got {self.max_joint_speed_deg}')
+
+    @property
+    def speed(self) -> float:
+        """The commanded joint speed [rad/s]."""
+        return float(np.radians(self.max_joint_speed_deg) * self.speed_scale)
 
 
 @dataclass(frozen=True)
@@ -137,6 +165,10 @@ class CalibrationLoop:
         self.target: NDArray[np.float64] | None = None
         self.reached: NDArray[np.float64] | None = None
         self.selection_seconds = 0.0
+        self.selection: Selection | None = None
+        #: Seconds the commanded motion takes at the commanded speed (its ``time_from_start``).
+        self.duration = 0.0
+        self.stop_reason = ''
         self.t_command = 0.0
         self.t_settled = 0.0
         self.detected: bool | None = None
@@ -147,7 +179,13 @@ class CalibrationLoop:
 
     @property
     def done(self) -> bool:
-        return self.phase is Phase.DONE
+        """Finished, or stopped by the watchdog."""
+        return self.phase in (Phase.DONE, Phase.STOPPED)
+
+    @property
+    def stopped(self) -> bool:
+        """Stopped by the watchdog (a target not reached in time)."""
+        return self.phase is Phase.STOPPED
 
     @property
     def iteration(self) -> int:
@@ -182,8 +220,10 @@ class CalibrationLoop:
             self.planner.start = self.q.copy()
         model = self.planner.model
         sel = self.planner.select(dh, P, camera_pose)
+        self.selection = sel
         self.target = np.clip(sel.theta, model.limits[:, 0], model.limits[:, 1])
         self.selection_seconds = sel.seconds
+        self.duration = float(np.max(np.abs(self.target - self.q))) / self.settings.speed
         self.phase = Phase.MOVING
         self.t_command = self.clock()
         self.detected = None
@@ -238,11 +278,16 @@ class CalibrationLoop:
     def tick(self) -> Iteration | None:
         """Enforce the timeouts (call periodically)."""
         s = self.settings
-        if self.phase is Phase.MOVING and self.clock() - self.t_command > s.settle_timeout:
+        if self.phase is Phase.MOVING and self.clock() - self.t_command > self.duration + s.settle_timeout:
             err = np.abs(self.q - self.target)
             j = int(np.argmax(err))
-            return self._finish(Outcome.UNREACHABLE, f'target not reached within {s.settle_timeout:.1f} s: '
-                                f'{self.planner.model.joint_names[j]} is {np.degrees(err[j]):.2f} deg away')
+            it = self._finish(Outcome.UNREACHABLE, f'target not reached within {self.duration + s.settle_timeout:.1f} s '
+                              f'({self.duration:.1f} s commanded): {self.planner.model.joint_names[j]} is '
+                              f'{np.degrees(err[j]):.2f} deg away')
+            if s.stop_on_unreachable:
+                self.phase = Phase.STOPPED
+                self.stop_reason = f'watchdog: iteration {it.attempt.iteration}: {it.reason}'
+            return it
         if self.phase is Phase.AWAITING_OUTCOME and self.clock() - self.t_settled > s.outcome_timeout:
             if self.detected is None and self.bad_frames:
                 return self._finish(Outcome.BAD_INPUT, f'{self.bad_frames} frame(s) after settling were bad '
@@ -276,13 +321,18 @@ class CalibrationLoop:
         now = self.clock()
         settled = self.phase is Phase.AWAITING_OUTCOME
         reached = self.reached if settled else self.q.copy()
-        a = self.planner.record(self.target, reached, outcome, self.detected, self.selection_seconds)
+        sel = self.selection
+        source = '' if sel is None else ('pose_list' if sel.optimizer.startswith('pose_list') else sel.optimizer)
+        a = self.planner.record(self.target, reached, outcome, self.detected, self.selection_seconds,
+                                0 if sel is None else sel.refused, 0 if sel is None else sel.refused_paths, source)
         move_s = (self.t_settled if settled else now) - self.t_command
         outcome_s = now - self.t_settled if settled else 0.0
         record = {'iteration': a.iteration, 'strategy': self.planner.strategy.value, 'outcome': outcome.value,
                   'detected': a.detected, 'reason': why, 'target_deg': np.degrees(a.target).tolist(),
                   'reached_deg': np.degrees(a.reached).tolist(), 'movement_deg': a.movement_deg,
                   'selection_s': a.selection_seconds, 'discarded': self.planner.discarded,
-                  'move_sim_s': move_s, 'outcome_sim_s': outcome_s, 'sim_time': now}
+                  'move_sim_s': move_s, 'outcome_sim_s': outcome_s, 'sim_time': now,
+                  'source': source, 'refused': a.refused, 'refused_paths': a.refused_paths,
+                  'safety_s': 0.0 if sel is None else sel.safety_seconds, 'command_s': self.duration}
         self.phase = Phase.DONE if a.iteration >= self.settings.iterations else Phase.WAITING
         return Iteration(a, why, move_s, outcome_s, now, record)

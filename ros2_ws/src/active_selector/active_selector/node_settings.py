@@ -44,6 +44,14 @@ class SelectorNodeSettings:
                                 'camera pose, whose covariance then comes with the estimate')
     marker_prior: str = setting('', "The estimator's marker_prior: non-empty (not 0) when it estimates the "
                                 'marker offset')
+    collision_check: bool = setting(True, 'Refuse targets inside the collision margins of the robot description '
+                                          "(obstacles, the arm itself) and targets whose straight joint-space path "
+                                          'from where the arm is leaves them (body_schema.collision)')
+    collision_margin: float = setting(-1.0, 'Margin [m] to the obstacles; negative: the description\'s '
+                                      'collision.margin', (-1.0, 1.0))
+    poses_file: str = setting('', 'A pose list (calibration_interfaces.pose_list: a reviewed plan or taught poses) '
+                                  'visited first, in order, each checked like a selection, before the strategy '
+                                  'takes over')
 
 
 @dataclass(frozen=True)

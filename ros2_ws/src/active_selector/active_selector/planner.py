@@ -2,11 +2,16 @@
 
 :class:`Planner` holds one strategy (R, AL, UCSAL, CCSAL), the occlusion model it learns from
 attempt outcomes, the noise model it uses to predict ``R(theta)``, and the history of visited
-configurations. The node feeds it estimates and outcomes; everything here is testable in plain
-Python.
+configurations. With a collision model it never selects a configuration inside the margins nor one
+whose straight joint-space path from where the arm is leaves them (refusals are counted per
+selection). A list of poses (reviewed from a plan, or taught by hand) is visited first, each
+checked the same way, before the strategy takes over; :meth:`Planner.plan` plans such a list from
+an estimate without moving anything. The node feeds it estimates and outcomes; everything here is
+testable in plain Python.
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -14,8 +19,8 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.stats import qmc
 
 from body_schema import ArmModel
-from body_schema.acquisition import (CRITERIA, OCCLUSION_MODES, AcquisitionCost, JointSelector, Selection,
-                                     SelectorConfig, Strategy)
+from body_schema.acquisition import (CRITERIA, OCCLUSION_MODES, AcquisitionCost, JointSelector, SafetyCheck,
+                                     Selection, SelectorConfig, Strategy)
 from body_schema.extrinsics import Extrinsics
 from body_schema.noise import NoiseModel
 from body_schema.occlusion import OcclusionModel, VisibilityPrior
@@ -83,6 +88,9 @@ class Attempt:
     detected: bool
     movement_deg: float          # accumulated L1 joint movement after this iteration
     selection_seconds: float
+    refused: int = 0             # configurations the selection refused: inside a collision margin
+    refused_paths: int = 0       # ... or behind one (the straight path to them leaves a margin)
+    source: str = ''             # 'pose_list' for a pose from the list, else the strategy's search
 
 
 @dataclass
@@ -100,6 +108,9 @@ class Planner:
     extrinsics : Extrinsics, optional
         Camera / marker corrections the estimator estimates with the table (the covariance passed
         to :meth:`select` then includes them; see :class:`body_schema.acquisition.AcquisitionCost`).
+    safety : SafetyCheck, optional
+        A :class:`body_schema.collision.CollisionModel`: no target inside its margins, no path
+        from where the arm is that leaves them.
     """
 
     model: ArmModel
@@ -107,6 +118,7 @@ class Planner:
     settings: PlannerSettings = PlannerSettings()
     history: list[Attempt] = field(default_factory=list)
     extrinsics: Extrinsics | None = None
+    safety: SafetyCheck | None = None
 
     def __post_init__(self) -> None:
         box = self.model.calibration_box
@@ -120,6 +132,11 @@ class Planner:
             self.visibility = VisibilityPrior(self.model.camera)
         self.start: NDArray[np.float64] | None = None
         self.movement_deg = 0.0
+        #: Poses still to visit before the strategy takes over (a reviewed plan, a taught list).
+        self.queue: list[NDArray[np.float64]] = []
+        #: Poses of the list refused as unsafe: (index in the list, why).
+        self.skipped: list[tuple[int, str]] = []
+        self._queued = 0
         # Fixed (seed 0) so the criterion is the same function in every run and iteration.
         self.box_configs = box[:, 0] + (box[:, 1] - box[:, 0]) * qmc.Sobol(
             box.shape[0], rng=0).random_base2(int(np.log2(self.settings.box_samples)))
@@ -167,16 +184,102 @@ class Planner:
                                       if len(tried) else 0.5)
         return cost
 
+    def queue_poses(self, poses: ArrayLike) -> None:
+        """Visit ``poses`` (K, L) [rad] first, in order, before the strategy selects.
+
+        Raises
+        ------
+        ValueError
+            If a pose has the wrong length, is not finite or lies outside the joint limits.
+        """
+        poses = np.atleast_2d(np.asarray(poses, dtype=float))
+        if poses.shape[1] != self.model.n_joints or not np.all(np.isfinite(poses)):
+            raise ValueError(f'poses must be finite, shape (K, {self.model.n_joints}), got {poses.shape}')
+        outside = np.nonzero(~self.model.within_limits(poses))[0]
+        if outside.size:
+            raise ValueError(f'pose {int(outside[0])} lies outside the joint limits: '
+                             f'{np.degrees(poses[outside[0]]).round(2).tolist()} deg')
+        self.queue.extend(poses)
+
+    def _from_queue(self) -> Selection | None:
+        """The next safe pose of the list (unsafe ones are skipped and remembered), or None."""
+        t0 = time.perf_counter()
+        refused = refused_paths = 0
+        while self.queue:
+            theta = self.queue.pop(0)
+            index = self._queued
+            self._queued += 1
+            if self.safety is not None:
+                if not self.safety.clear(theta):
+                    refused += 1
+                    self.skipped.append((index, 'inside a collision margin'))
+                    continue
+                if not self.safety.path_clear(self.previous, theta).clear:
+                    refused_paths += 1
+                    self.skipped.append((index, 'the straight path to it leaves a collision margin'))
+                    continue
+            return Selection(theta, float('nan'), 0, time.perf_counter() - t0, self.model.calibration_box,
+                             f'pose_list[{index}]', refused=refused, refused_paths=refused_paths)
+        return None
+
     def select(self, dh: ArrayLike | None, P: ArrayLike | None,  # noqa: N803
                camera_pose: ArrayLike | None) -> Selection:
-        """The next target configuration (clipped to the joint limits)."""
+        """The next target configuration (clipped to the joint limits): the next safe pose of the
+        list, else the strategy's choice.
+
+        Raises
+        ------
+        body_schema.acquisition.UnsafeSelection
+            If no configuration the search evaluated is safe to command.
+        """
         if self.start is None:
             raise RuntimeError('Planner.start (the initial configuration) must be set before selecting')
+        queued = self._from_queue()
+        if queued is not None:
+            return queued
         cost = None if self.strategy is Strategy.RANDOM else self.cost(dh, P, camera_pose)
-        return self.selector.select(cost, self.previous, self.visited)
+        return self.selector.select(cost, self.previous, self.visited, safety=self.safety, start=self.previous)
+
+    def plan(self, dh: ArrayLike, P: ArrayLike, camera_pose: ArrayLike, n: int) -> list[Selection]:  # noqa: N803
+        """Plan ``n`` poses from an estimate without moving: what a run would visit if every
+        attempt were seen and the estimate stayed put.
+
+        Each pose is selected as :meth:`select` would (the strategy, the collision checks from the
+        previous pose), then counted as visited and its expected information folded into ``P``
+        (the update's covariance does not depend on what is measured); the occlusion model learns
+        nothing. The planner's history is left as it was.
+
+        Parameters
+        ----------
+        dh : array_like, shape (L, 4)
+        P : array_like, shape (n_p, n_p)
+            The estimate's covariance (with the extrinsics' rows when they are estimated).
+        camera_pose : array_like, shape (4, 4)
+        n : int
+
+        Returns
+        -------
+        list of Selection, length n
+        """
+        if self.start is None:
+            raise RuntimeError('Planner.start (the initial configuration) must be set before planning')
+        history, movement = list(self.history), self.movement_deg
+        P = np.array(P, dtype=float)  # noqa: N806
+        out = []
+        try:
+            for _ in range(n):
+                sel = self.select(dh, P, camera_pose)
+                out.append(sel)
+                if self.strategy is not Strategy.RANDOM:
+                    P = self.cost(dh, P, camera_pose).posterior(sel.theta)  # noqa: N806
+                self.history.append(Attempt(len(self.history) + 1, sel.theta, sel.theta, Outcome.ACCEPTED, True,
+                                            0.0, sel.seconds))
+        finally:
+            self.history[:], self.movement_deg = history, movement
+        return out
 
     def record(self, target: ArrayLike, reached: ArrayLike, outcome: Outcome | str, detected: bool | None,
-               selection_seconds: float) -> Attempt:
+               selection_seconds: float, refused: int = 0, refused_paths: int = 0, source: str = '') -> Attempt:
         """Account one iteration: occlusion model, movement, history.
 
         ``detected`` None means no frame was judged at the reached configuration (no frame, or
@@ -196,6 +299,6 @@ class Planner:
             self.occlusion.add(np.clip(reached, self.model.calibration_box[:, 0], self.model.calibration_box[:, 1]),
                                detected)
         attempt = Attempt(len(self.history) + 1, np.asarray(target, dtype=float), reached, outcome,
-                          bool(detected), self.movement_deg, selection_seconds)
+                          bool(detected), self.movement_deg, selection_seconds, refused, refused_paths, source)
         self.history.append(attempt)
         return attempt

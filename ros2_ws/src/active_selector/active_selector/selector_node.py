@@ -8,7 +8,12 @@ otherwise the estimator's verdict at this configuration on ``/body_schema/update
 ``timeout``), feed the occlusion model, account the movement. The next selection starts on the
 first joint state after an iteration ends; a 20 Hz wall-clock step reports missing inputs and
 enforces the timeouts. After ``iterations`` iterations it logs a summary and the process exits
-with status 0. Topics and QoS: the contract
+with status 0. Safety (docs/real_robot_arm.md): no target inside the description's
+collision margins nor behind one (``collision_check``; refusals are counted in each progress
+record), poses of ``poses_file`` first, commands timed at ``speed_scale`` times
+``max_joint_speed_deg``, and a watchdog (``stop_on_unreachable``): a target not reached within
+``settle_timeout`` beyond its commanded duration, or no safe target at all, holds the arm where it
+is and ends the process with status 3. Topics and QoS: the contract
 (:mod:`calibration_interfaces.contract`).
 
 Subscriptions
@@ -35,14 +40,15 @@ Parameters
 ----------
 Declared from the settings dataclasses of :mod:`active_selector.node_settings` (one default, one
 description and one range each): robot, eye, progress_file, wait_for_recorder, wait_for_estimator, resume,
-wait_report_period (SelectorNodeSettings); strategy ('random' | 'al' | 'ucsal' | 'ccsal'), seed, gamma, delta,
+wait_report_period, camera_prior, marker_prior, collision_check, collision_margin, poses_file
+(SelectorNodeSettings); strategy ('random' | 'al' | 'ucsal' | 'ccsal'), seed, gamma, delta,
 optimizer, algorithm, max_evals, n_candidates, refine_starts, refine_evals, local_algorithm,
 repeat_tolerance (StrategySettings); penalty_a, penalty_b, occlusion_length_scale,
 occlusion_a0, occlusion_b0, occlusion_prior ('flat' | 'geometric'), occlusion_mode ('paper' |
 'expected' | 'gain'), criterion ('a_optimal' | 'v_optimal'), box_samples (PlannerSettings);
 iterations, settle_tolerance (rad), settle_timeout (s, sim), settle_time (s, sim),
-outcome_timeout (s, sim) (LoopSettings); noise_model ('pose_dependent' | 'constant'),
-cn_sigma_pos, cn_sigma_rot_deg, pdn_a_pos, pdn_b_pos, pdn_a_rot, pdn_b_rot (NoiseSettings,
+outcome_timeout (s, sim), max_joint_speed_deg, speed_scale, stop_on_unreachable (LoopSettings);
+noise_model ('pose_dependent' | 'constant'), cn_sigma_pos, cn_sigma_rot_deg, pdn_a_pos, pdn_b_pos, pdn_a_rot, pdn_b_rot (NoiseSettings,
 PoseDependentSettings; the pdn_* negative by default: the robot description's fitted law).
 """
 from __future__ import annotations
@@ -69,6 +75,7 @@ from std_msgs.msg import Float64MultiArray, String
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from body_schema import load_robot
+from body_schema.acquisition import UnsafeSelection
 from body_schema.extrinsics import Extrinsics, parse_std
 from calibration_interfaces.contract import SENSOR
 from calibration_interfaces.messages import (MessageFormatError, joints_in_order, msg_to_covariance, msg_to_table,
@@ -77,6 +84,7 @@ from calibration_interfaces.node_util import WarnOnce, WarnThrottled, declare_se
 from calibration_interfaces.noise import NoiseSettings, PoseDependentSettings
 from calibration_interfaces.outcome import (DETECTOR_DIAGNOSTIC, FrameStatus, StatusFormatError, decode_frame,
                                              decode_status)
+from calibration_interfaces.pose_list import read_pose_list
 
 from .loop import CalibrationLoop, Iteration, LoopSettings, Phase
 from .node_settings import SelectorNodeSettings, StrategySettings
@@ -105,7 +113,22 @@ class SelectorNode(Node):
                                                 ('marker_prior', self.settings.marker_prior))]
         extrinsics = (Extrinsics(self.model.camera_pose(self.settings.eye), self.model.markers[0].hand_T_marker,
                                  *priors) if any(p is not None for p in priors) else None)
-        self.planner = Planner(self.model, noise, planner_settings, extrinsics=extrinsics)
+        safety = None
+        if self.settings.collision_check:
+            from body_schema.collision import CollisionModel   # Pinocchio: only when checking
+
+            margin = self.settings.collision_margin
+            safety = CollisionModel(self.model, margin if margin >= 0 else None)
+            self.get_logger().info(safety.describe())
+        else:
+            self.get_logger().warning('collision_check is off: targets are not checked against the obstacles '
+                                      'or the arm itself')
+        self.planner = Planner(self.model, noise, planner_settings, extrinsics=extrinsics, safety=safety)
+        if self.settings.poses_file:
+            poses = read_pose_list(self.settings.poses_file, self.model)
+            self.planner.queue_poses(poses.positions)
+            self.get_logger().info(f'{len(poses.positions)} poses of {self.settings.poses_file} first, then '
+                                   f'{strategy.strategy}')
         self.n_covariance = self.model.n_params + (0 if extrinsics is None else extrinsics.n)
         self.iterations = loop_settings.iterations
         self.loop = CalibrationLoop(self.planner, loop_settings, self.now)
@@ -122,6 +145,7 @@ class SelectorNode(Node):
         self.P: np.ndarray | None = None
         self.camera_pose: np.ndarray | None = None
         self._last_wait_report = 0.0
+        self._held = False                  # the arm held after a stop
         self._warn_once = WarnOnce(self)
         self._warn = WarnThrottled(self)
 
@@ -291,14 +315,40 @@ class SelectorNode(Node):
             self._select_and_command()
         else:
             self._report(self.loop.tick())
+        if self.loop.stopped and self.q is not None and not self._held:
+            self._held = True
+            self._command(self.q, 0.0)
+            self.get_logger().error(f'{self.loop.stop_reason}; the arm is held where it is and the run stops')
 
     def _select_and_command(self) -> None:
-        target = self.loop.select(self.dh, self.P, self.camera_pose)
+        skipped = len(self.planner.skipped)
+        try:
+            target = self.loop.select(self.dh, self.P, self.camera_pose)
+        except UnsafeSelection as exc:
+            self._stop(f'no safe target: {exc}')
+            return
+        for index, why in self.planner.skipped[skipped:]:
+            self.get_logger().warning(f'pose {index} of {self.settings.poses_file} skipped: {why}')
+        self._command(target, self.loop.duration)
+
+    def _command(self, target: np.ndarray, duration: float) -> None:
         traj = JointTrajectory()
         traj.header.stamp = self.get_clock().now().to_msg()
         traj.joint_names = list(self.model.joint_names)
-        traj.points = [JointTrajectoryPoint(positions=target.tolist(), time_from_start=Duration())]
+        traj.points = [JointTrajectoryPoint(positions=target.tolist(),
+                                            time_from_start=RclpyDuration(seconds=duration).to_msg())]
         self.pub_cmd.publish(traj)
+
+    def _stop(self, why: str) -> None:
+        """Hold the arm where it is and end the run (exit status :data:`STOPPED_STATUS`)."""
+        from .loop import Phase as _Phase
+
+        self.loop.phase = _Phase.STOPPED
+        self.loop.stop_reason = why
+        self._held = True
+        if self.q is not None:
+            self._command(self.q, 0.0)
+        self.get_logger().error(f'{why}; the arm is held where it is and the run stops')
 
     def _report(self, it: Iteration | None) -> None:
         """Log, publish and append the progress record of an ended iteration."""
@@ -324,6 +374,9 @@ class SelectorNode(Node):
 #: Seconds the selector waits, once done, for its last records to be acknowledged.
 FLUSH_TIMEOUT_S = 5.0
 
+#: Exit status of a run the watchdog stopped (a target not reached in time, no safe target).
+STOPPED_STATUS = 3
+
 
 def _run_until_done(node: SelectorNode) -> None:
     while rclpy.ok() and not node.done:
@@ -335,6 +388,8 @@ def _run_until_done(node: SelectorNode) -> None:
             if not pub.wait_for_all_acked(RclpyDuration(seconds=FLUSH_TIMEOUT_S)):
                 node.get_logger().warning(f'{pub.topic_name}: not every subscriber acknowledged the last '
                                           f'message within {FLUSH_TIMEOUT_S} s')
+        if node.loop.stopped:
+            raise SystemExit(STOPPED_STATUS)
 
 
 def main(args: list[str] | None = None) -> None:

@@ -99,20 +99,40 @@ def test_an_empty_frame_after_settling_fails_the_iteration(loop):
     assert len(loop.planner.history) == 1
 
 
-def test_a_target_not_reached_in_time_is_unreachable(loop):
+@pytest.mark.parametrize('watchdog', [True, False])
+def test_a_target_not_reached_in_time_is_unreachable_and_the_watchdog_stops_the_run(loop, watchdog):
+    loop.settings = LoopSettings(**{**loop.settings.__dict__, 'stop_on_unreachable': watchdog})
     target = _command(loop)
-    loop.clock.t = 2.0
+    deadline = loop.duration + 3.0                              # the commanded motion, then settle_timeout
+    assert loop.duration > 0.5
+    loop.clock.t = deadline - 0.1
     far = target.copy()
     far[3] += np.radians(10.0)
-    loop.joint_state(2.0, far)
+    loop.joint_state(deadline - 0.1, far)
     assert loop.tick() is None                                  # within settle_timeout
-    loop.clock.t = 3.5
+    loop.clock.t = deadline + 0.1
     it = loop.tick()
     assert it.attempt.outcome == 'unreachable'
     assert f'{ARM.joint_names[3]} is 10.00 deg away' in it.reason
-    assert np.array_equal(it.attempt.reached, far) and it.outcome_s == 0.0 and it.move_s == 3.5
+    assert np.array_equal(it.attempt.reached, far) and it.outcome_s == 0.0
+    assert it.move_s == pytest.approx(deadline + 0.1)
     assert loop.planner.occlusion.n_configs == 0                # an unreached pose teaches nothing
-    assert loop.phase is Phase.WAITING
+    if watchdog:
+        assert loop.phase is Phase.STOPPED and loop.done and loop.stopped
+        assert loop.stop_reason.startswith('watchdog: iteration 1') and 'deg away' in loop.stop_reason
+    else:
+        assert loop.phase is Phase.WAITING and not loop.done
+
+
+@pytest.mark.parametrize('scale', [1.0, 0.25])
+def test_commands_are_timed_at_the_scaled_joint_speed(scale):
+    planner = Planner(ARM, PoseDependentNoise(), PlannerSettings(SelectorConfig(strategy='random', seed=4)))
+    lp = CalibrationLoop(planner, LoopSettings(max_joint_speed_deg=30.0, speed_scale=scale), Clock())
+    lp.joint_state(0.0, START)
+    target = lp.select(None, None, None)
+    assert lp.duration == pytest.approx(np.degrees(np.max(np.abs(target - START))) / (30.0 * scale))
+    with pytest.raises(ValueError, match='speed_scale'):
+        LoopSettings(speed_scale=0.0)
 
 
 def test_joint_states_from_before_the_command_do_not_settle(loop):

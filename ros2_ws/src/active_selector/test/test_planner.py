@@ -102,3 +102,56 @@ def test_the_cost_is_computed_on_the_covariance_the_next_update_starts_from():
     assert cost.uncertainty == pytest.approx(np.trace(P) + 7 * (2e-8 + 8e-6))
     with pytest.raises(ValueError, match='q_angle -1'):
         PlannerSettings(q_angle=-1.0)
+
+
+class _Refuse:
+    """A safety check refusing configurations whose first joint is above ``limit`` [rad]."""
+
+    def __init__(self, limit: float) -> None:
+        self.limit = limit
+
+    def clear(self, q):
+        q = np.atleast_2d(q)
+        out = q[:, 0] <= self.limit
+        return bool(out[0]) if len(out) == 1 else out
+
+    def path_clear(self, q0, q1):
+        return type('P', (), {'clear': True})()
+
+
+def test_a_pose_list_comes_first_unsafe_poses_are_skipped_then_the_strategy_selects():
+    safety = _Refuse(np.radians(-40.0))
+    pl = Planner(ARM, PoseDependentNoise(), PlannerSettings(SelectorConfig(strategy='al', n_candidates=64)),
+                 safety=safety)
+    pl.start = np.mean(ARM.calibration_box, axis=1)
+    good = pl.start.copy()
+    good[0] = np.radians(-50.0)
+    bad = pl.start.copy()
+    bad[0] = np.radians(-30.0)                             # beyond the stub's -40 deg: refused
+    pl.queue_poses([good, bad, good + 0.01])
+    P, cam = sampling.initial_covariance(7), ARM.camera_pose()
+    first = pl.select(ARM.dh, P, cam)
+    assert first.optimizer == 'pose_list[0]' and np.array_equal(first.theta, good)
+    second = pl.select(ARM.dh, P, cam)
+    assert second.optimizer == 'pose_list[2]' and second.refused == 1
+    assert pl.skipped == [(1, 'inside a collision margin')]
+    third = pl.select(ARM.dh, P, cam)
+    assert third.optimizer.startswith('batch') and third.theta[0] <= np.radians(-40.0)
+    with pytest.raises(ValueError, match='outside the joint limits'):
+        pl.queue_poses([ARM.limits[:, 1] + 0.1])
+
+
+def test_plan_picks_distinct_safe_poses_shrinks_the_covariance_and_leaves_the_history():
+    safety = _Refuse(np.radians(-40.0))
+    settings = PlannerSettings(SelectorConfig(strategy='al', n_candidates=64, seed=2), box_samples=32)
+    pl = Planner(ARM, PoseDependentNoise(), settings, safety=safety)
+    pl.start = np.mean(ARM.calibration_box, axis=1)
+    P = sampling.initial_covariance(7)
+    plan = pl.plan(ARM.dh, P, ARM.camera_pose(), 4)
+    q = np.array([s.theta for s in plan])
+    assert q.shape == (4, 7) and np.all(q[:, 0] <= np.radians(-40.0))
+    assert min(np.max(np.abs(a - b)) for i, a in enumerate(q) for b in q[i + 1:]) > 2e-3   # no repeats
+    assert pl.history == [] and pl.movement_deg == 0.0
+    cost = pl.cost(ARM.dh, P, ARM.camera_pose())
+    after = cost.posterior(q[0])
+    assert np.trace(after) < np.trace(P) and np.all(np.linalg.eigvalsh(after) > 0)

@@ -210,15 +210,24 @@ def test_a_malformed_status_is_reported_once_and_ignored(ros, capfd):
     assert capfd.readouterr().err.count('/body_schema/update_status ignored') == 1
 
 
-def test_a_target_not_reached_in_time_is_unreachable(ros):
-    probe = Probe(ros, strategy='random', iterations=1, seed=6, settle_timeout=0.3)
+def test_a_target_not_reached_in_time_is_unreachable_and_the_watchdog_holds_the_arm(ros):
+    probe = Probe(ros, strategy='random', iterations=3, seed=6, settle_timeout=0.3)
     target = probe.target()
+    first = probe.commands[-1].points[-1].time_from_start
+    duration = first.sec + first.nanosec * 1e-9          # timed at the commanded speed, not 0
+    assert duration > 0.1
     stuck = target.copy()
     stuck[0] = target[0] + np.radians(5.0) * (1 if target[0] < 0 else -1)
     probe.joints(stuck)
-    ros.spin_until(lambda: probe.progress, 5.0, 'the timeout')
+    ros.spin_until(lambda: probe.progress, 5.0 + duration, 'the timeout')
     [rec] = probe.progress
     assert rec['outcome'] == 'unreachable' and f'{ARM.joint_names[0]} is 5.00 deg away' in rec['reason']
+    # The watchdog: the run stops (no further target) and the arm is held where it is.
+    ros.spin_until(lambda: len(probe.commands) >= 2, 5.0, 'the hold command')
+    np.testing.assert_allclose(probe.commands[-1].points[-1].positions, stuck)
+    assert probe.node.done and probe.node.loop.stopped and 'watchdog' in probe.node.loop.stop_reason
+    ros.spin_for(0.3)
+    assert len(probe.progress) == 1 and len(probe.commands) == 2
 
 
 @pytest.mark.parametrize('name, value', [('strategy', 'best'), ('noise_model', 'pdn'), ('eye', 'middle')])

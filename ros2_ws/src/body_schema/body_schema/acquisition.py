@@ -54,6 +54,14 @@ per evaluation. ``optimizer='batch'`` evaluates a seeded scrambled Sobol set of 
 vectorised pass (batched frames, Jacobians, noise prediction, 6x6 solves, occlusion means), then
 refines the best few with a short bounded derivative-free NLopt search (BOBYQA by default).
 
+Safety: with a :class:`SafetyCheck` (e.g. :class:`body_schema.collision.CollisionModel`) the
+selection never returns a configuration inside the collision margins, nor one whose straight
+joint-space path from where the arm is leaves them. The search itself is unchanged (its cost
+would not allow a check at every evaluation); its evaluated points are checked best-first (the
+batch optimiser's refinement starts and local steps too, which are few) and the best safe one is
+selected. :attr:`Selection.refused` and :attr:`Selection.refused_paths` count the better points
+refused on the way.
+
 No repeats: a configuration within ``repeat_tolerance`` (max-abs over joints, rad) of any visited
 configuration is never selected (DIRECT sees a huge value there, the batch masks it), since the
 simulator would render the same image and the observation would teach nothing new.
@@ -64,7 +72,7 @@ import enum
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
+from typing import Callable, Protocol, Sequence
 
 import nlopt
 import numpy as np
@@ -82,7 +90,23 @@ from .sampling import as_rng
 
 __all__ = ['Strategy', 'DIRECT_ALGORITHMS', 'LOCAL_ALGORITHMS', 'CRITERIA', 'OCCLUSION_MODES',
            'OPTIMIZERS', 'DETECTOR_NOISE_SCALES', 'information_gain', 'expected_trace',
-           'box_pose_weight', 'AcquisitionCost', 'SelectorConfig', 'Selection', 'JointSelector']
+           'box_pose_weight', 'AcquisitionCost', 'SelectorConfig', 'Selection', 'SafetyCheck', 'UnsafeSelection',
+           'JointSelector']
+
+class SafetyCheck(Protocol):
+    """What the selector asks before it returns a target (see :class:`body_schema.collision.CollisionModel`)."""
+
+    def clear(self, q: ArrayLike) -> NDArray[np.bool_] | bool:
+        """Whether configurations (L,) or (N, L) keep the margins."""
+
+    def path_clear(self, q0: ArrayLike, q1: ArrayLike) -> object:
+        """Whether the straight joint-space path from ``q0`` (where the arm is) to ``q1`` keeps them
+        (an object with a boolean ``clear``)."""
+
+
+class UnsafeSelection(RuntimeError):
+    """No evaluated configuration was safe to command (all inside a margin or behind one)."""
+
 
 class Strategy(str, enum.Enum):
     """Joint-selection strategies of the paper."""
@@ -361,6 +385,16 @@ class AcquisitionCost:
         H = self._jacobian(frames)                                               # noqa: N806
         return self._visibility(frames[:, -1], H @ self.P @ np.swapaxes(H, -1, -2))
 
+    def posterior(self, theta: ArrayLike) -> NDArray[np.float64]:
+        """The covariance after one observation at ``theta`` (L,): ``P - B^T S^-1 B`` with
+        ``B = H P``, ``S = H P H^T + R`` (it does not depend on what is measured), shape like ``P``."""
+        frames = kinematics.chain_frames(self.base, self.dh, np.asarray(theta, dtype=float)[None])
+        H = self._jacobian(frames)[0]                                            # noqa: N806
+        R = self.noise.hand_covariance(self.camera_pose, frames[0, -1], self.markers).reshape(6, 6)  # noqa: N806
+        hp = H @ self.P
+        post = self.P - hp.T @ np.linalg.solve(hp @ H.T + R, hp)
+        return 0.5 * (post + post.T)
+
     def terms(self, theta: ArrayLike) -> tuple[float, float, float]:
         """``(C0, eta, p_x)`` at one configuration ``theta`` (L,); ``C0 = tr(A P) - g``."""
         gain, eta, px = self.terms_batch(np.asarray(theta, dtype=float)[None])
@@ -477,6 +511,13 @@ class Selection:
         ``'random'``, ``'direct:<algorithm>'`` or ``'batch:<local algorithm>'``.
     excluded : int
         Evaluated configurations rejected as repeats of visited ones.
+    refused : int
+        Configurations the search preferred that were refused: inside a collision margin (better
+        candidates checked best-first, refinement starts and steps).
+    refused_paths : int
+        The same, refused because the straight joint-space path to them leaves a margin.
+    safety_seconds : float
+        Of ``seconds``, the time spent on those checks.
     """
 
     theta: NDArray[np.float64]
@@ -486,6 +527,9 @@ class Selection:
     bounds: NDArray[np.float64]
     optimizer: str = 'direct:DIRECT_L'
     excluded: int = 0
+    refused: int = 0
+    refused_paths: int = 0
+    safety_seconds: float = 0.0
 
 
 class JointSelector:
@@ -564,7 +608,8 @@ class JointSelector:
         return np.isfinite(d)
 
     def select(self, cost: AcquisitionCost | None, previous: ArrayLike | None = None,
-               visited: ArrayLike | None = None) -> Selection:
+               visited: ArrayLike | None = None, safety: SafetyCheck | None = None,
+               start: ArrayLike | None = None) -> Selection:
         """The next configuration.
 
         Parameters
@@ -575,18 +620,34 @@ class JointSelector:
             The previous configuration (needed by UCSAL and CCSAL).
         visited : array_like, shape (K, L), optional
             Every configuration visited (or targeted) so far; none is selected again.
+        safety : SafetyCheck, optional
+            Refuses configurations inside the collision margins and paths from ``start`` that
+            leave them.
+        start : array_like, shape (L,), optional
+            Where the arm is (the paths' start); ``previous`` if omitted (required with ``safety``).
 
         Raises
         ------
         RuntimeError
             If every evaluated configuration repeats a visited one.
+        UnsafeSelection
+            If none of the evaluated configurations is safe to command.
         """
         t0 = time.perf_counter()
         strategy = self.config.strategy
         bounds = self.bounds(previous)
+        here = start if start is not None else previous
+        if safety is not None and here is None:
+            raise ValueError('a safety check needs the configuration the arm starts from')
+        guard = None if safety is None else _Guard(safety, np.asarray(here, dtype=float), bounds)
         if strategy is Strategy.RANDOM:
-            theta = self._rng.uniform(bounds[:, 0], bounds[:, 1])
-            return Selection(theta, float('nan'), 0, time.perf_counter() - t0, bounds, 'random')
+            for _ in range(RANDOM_TRIES):
+                theta = self._rng.uniform(bounds[:, 0], bounds[:, 1])
+                if guard is None or guard.safe(theta):
+                    return Selection(theta, float('nan'), 0, time.perf_counter() - t0, bounds, 'random',
+                                     **({} if guard is None else guard.counts()))
+            raise UnsafeSelection(f'random: none of {RANDOM_TRIES} uniform configurations of the box is safe to '
+                                  f'command ({guard.refused} inside a margin, {guard.refused_paths} behind one)')
         if cost is None:
             raise ValueError(f'strategy {strategy.value} needs an AcquisitionCost')
         if strategy in (Strategy.UCSAL, Strategy.CCSAL) and previous is None:
@@ -597,25 +658,29 @@ class JointSelector:
         if self.config.optimizer == 'batch':
             # UCSAL's L1 term has its kinks at the previous configuration: a snap target.
             anchor = prev if strategy is Strategy.UCSAL else None
-            theta, value, n_evals, excluded, name = self._batch(objective, bounds, anchor)
+            theta, value, n_evals, excluded, name, count = self._batch(objective, bounds, anchor, guard)
         else:
-            theta, value, n_evals, excluded, name = self._direct(objective, bounds)
+            theta, value, n_evals, excluded, name, count = self._direct(objective, bounds)
         if not np.isfinite(value):
             raise RuntimeError(f'{name}: all {n_evals} evaluated configurations repeat a visited one '
                                f'(repeat_tolerance {self.config.repeat_tolerance} rad) or have no finite cost')
+        if guard is not None:
+            theta, value = guard.best(count.points(), count.values(), name)
         return Selection(np.clip(theta, bounds[:, 0], bounds[:, 1]), value, n_evals,
-                         time.perf_counter() - t0, bounds, name, excluded)
+                         time.perf_counter() - t0, bounds, name, excluded,
+                         **({} if guard is None else guard.counts()))
 
     def _direct(self, objective: Callable[[NDArray[np.float64]], NDArray[np.float64]],
-                bounds: NDArray[np.float64]) -> tuple[NDArray[np.float64], float, int, int, str]:
-        """DIRECT family over ``bounds``: (theta, value, evaluations, excluded, name)."""
+                bounds: NDArray[np.float64]) -> tuple[NDArray[np.float64], float, int, int, str, '_Counted']:
+        """DIRECT family over ``bounds``: (theta, value, evaluations, excluded, name, evaluated points)."""
         n_evals = excluded = 0
         best = (np.inf, 0.5 * (bounds[:, 0] + bounds[:, 1]))
+        history = _Counted(objective)
 
         def f(theta: NDArray[np.float64], grad: NDArray[np.float64]) -> float:
             nonlocal n_evals, excluded, best
             n_evals += 1
-            v = float(objective(theta[None])[0])
+            v = float(history(theta[None])[0])
             if not np.isfinite(v):
                 excluded += 1
                 return _EXCLUDED        # keep DIRECT going; such points are never chosen
@@ -634,11 +699,12 @@ class JointSelector:
             opt.optimize(0.5 * (bounds[:, 0] + bounds[:, 1]))
         except nlopt.RoundoffLimited:
             pass  # the best point so far is still valid
-        return best[1], best[0], n_evals, excluded, f'direct:{self.config.algorithm}'
+        return best[1], best[0], n_evals, excluded, f'direct:{self.config.algorithm}', history
 
     def _batch(self, objective: Callable[[NDArray[np.float64]], NDArray[np.float64]],
                bounds: NDArray[np.float64], anchor: NDArray[np.float64] | None = None,
-               ) -> tuple[NDArray[np.float64], float, int, int, str]:
+               guard: '_Guard | None' = None,
+               ) -> tuple[NDArray[np.float64], float, int, int, str, '_Counted']:
         """Sobol candidates in one batch, then two rounds of local refinement and snapping.
 
         Snapping: the optima of these costs often sit on a face of the search box or, for UCSAL,
@@ -648,6 +714,10 @@ class JointSelector:
         refinement then moves only the joints not snapped. Round 1 refines the best
         ``refine_starts`` candidates with ``refine_evals`` evaluations each, round 2 (only if
         something snapped) the incumbent with half as many.
+
+        With a ``guard`` the starts are the best candidates inside no margin, and the local steps
+        and snaps count a configuration inside a margin as excluded (few evaluations: the Sobol
+        batch itself is checked best-first afterwards, in :meth:`_Guard.best`).
         """
         cfg = self.config
         lo, hi = bounds[:, 0], bounds[:, 1]
@@ -656,9 +726,15 @@ class JointSelector:
         cand = lo + sobol.random_base2(int(math.log2(cfg.n_candidates))) * (hi - lo)
         values = count(cand)
         order = np.argsort(values)
-        starts = [cand[i] for i in order[:max(cfg.refine_starts, 1)] if np.isfinite(values[i])]
+        finite = [i for i in order if np.isfinite(values[i])]
+        if guard is None:
+            starts = [cand[i] for i in finite[:max(cfg.refine_starts, 1)]]
+        else:
+            starts = guard.first_clear(cand, finite, max(cfg.refine_starts, 1))
+            count.objective = guard.masked(objective)
+        name = f'batch:{cfg.local_algorithm}'
         if not starts:
-            return cand[order[0]], float(values[order[0]]), count.evals, count.excluded, f'batch:{cfg.local_algorithm}'
+            return cand[order[0]], float(values[order[0]]), count.evals, count.excluded, name, count
         targets = np.stack([lo, hi] + ([] if anchor is None else [np.clip(anchor, lo, hi)]))   # (T, L)
         for rnd in range(2):
             if cfg.refine_starts > 0:
@@ -669,7 +745,7 @@ class JointSelector:
             self._snap(count, targets)
             if count.best_x is before:      # nothing snapped: a second round would repeat the first
                 break
-        return count.best_x, count.best, count.evals, count.excluded, f'batch:{cfg.local_algorithm}'
+        return count.best_x, count.best, count.evals, count.excluded, name, count
 
     def _local(self, count: '_Counted', x0: NDArray[np.float64], lo: NDArray[np.float64],
                hi: NDArray[np.float64], free: NDArray[np.bool_], max_evals: int) -> None:
@@ -722,12 +798,107 @@ class _Counted:
         self.evals = self.excluded = 0
         self.best = np.inf
         self.best_x = np.empty(0)
+        self._points: list[NDArray[np.float64]] = []
+        self._values: list[NDArray[np.float64]] = []
+
+    def points(self) -> NDArray[np.float64]:
+        """Every evaluated configuration, shape (N, L)."""
+        return np.concatenate(self._points) if self._points else np.empty((0, 0))
+
+    def values(self) -> NDArray[np.float64]:
+        """Their objective values, shape (N,)."""
+        return np.concatenate(self._values) if self._values else np.empty(0)
 
     def __call__(self, thetas: NDArray[np.float64]) -> NDArray[np.float64]:
+        thetas = np.atleast_2d(np.array(thetas, dtype=float))
         v = self.objective(thetas)
+        self._points.append(thetas)
+        self._values.append(np.asarray(v, dtype=float))
         self.evals += v.size
         self.excluded += int(np.sum(np.isinf(v)))
         k = int(np.argmin(v))
         if v[k] < self.best or self.best_x.size == 0:
             self.best, self.best_x = float(v[k]), np.array(thetas[k], dtype=float)
         return v
+
+
+#: Uniform draws the random strategy tries for a safe configuration before it gives up.
+RANDOM_TRIES = 1000
+
+
+class _Guard:
+    """Best-first safety checks of one selection, with their counts and time."""
+
+    def __init__(self, safety: SafetyCheck, start: NDArray[np.float64], bounds: NDArray[np.float64]) -> None:
+        self.safety, self.start, self.bounds = safety, start, bounds
+        self.refused = self.refused_paths = 0
+        self.seconds = 0.0
+        self._clear: dict[bytes, bool] = {}
+
+    def clear(self, theta: NDArray[np.float64]) -> bool:
+        """Whether one configuration keeps the margins; each one refused is counted once."""
+        key = theta.tobytes()
+        if key not in self._clear:
+            t0 = time.perf_counter()
+            self._clear[key] = ok = bool(self.safety.clear(theta))
+            self.seconds += time.perf_counter() - t0
+            self.refused += not ok
+        return self._clear[key]
+
+    def safe(self, theta: NDArray[np.float64]) -> bool:
+        """Configuration and path both clear (a path refused is counted)."""
+        if not self.clear(theta):
+            return False
+        t0 = time.perf_counter()
+        ok = bool(self.safety.path_clear(self.start, theta).clear)
+        self.seconds += time.perf_counter() - t0
+        if not ok:
+            self.refused_paths += 1
+        return ok
+
+    def first_clear(self, cand: NDArray[np.float64], order: Sequence[int], n: int) -> list[NDArray[np.float64]]:
+        """The first ``n`` candidates in ``order`` that keep the margins."""
+        out = []
+        for i in order:
+            if self.clear(cand[i]):
+                out.append(cand[i])
+                if len(out) == n:
+                    break
+        return out
+
+    def masked(self, objective: Callable[[NDArray[np.float64]], NDArray[np.float64]]
+               ) -> Callable[[NDArray[np.float64]], NDArray[np.float64]]:
+        """``objective`` with ``inf`` at configurations inside a margin (for the few local evaluations)."""
+        def f(thetas: NDArray[np.float64]) -> NDArray[np.float64]:
+            v = np.array(objective(thetas), dtype=float)
+            for k, theta in enumerate(np.atleast_2d(thetas)):
+                if np.isfinite(v[k]) and not self.clear(np.clip(theta, self.bounds[:, 0], self.bounds[:, 1])):
+                    v[k] = np.inf
+            return v
+        return f
+
+    def best(self, points: NDArray[np.float64], values: NDArray[np.float64], name: str
+             ) -> tuple[NDArray[np.float64], float]:
+        """The best evaluated point that is safe to command, checked best-first.
+
+        Raises
+        ------
+        UnsafeSelection
+            If none is.
+        """
+        seen: set[bytes] = set()
+        finite = np.nonzero(np.isfinite(values))[0]
+        for i in finite[np.argsort(values[finite], kind='stable')]:
+            theta = np.clip(points[i], self.bounds[:, 0], self.bounds[:, 1])
+            key = theta.tobytes()
+            if key in seen:
+                continue
+            seen.add(key)
+            if self.safe(theta):
+                return theta, float(values[i])
+        raise UnsafeSelection(f'{name}: none of the {len(seen)} evaluated configurations is safe to command '
+                              f'({self.refused} inside a collision margin, {self.refused_paths} with a path that '
+                              f'leaves one)')
+
+    def counts(self) -> dict[str, float]:
+        return {'refused': self.refused, 'refused_paths': self.refused_paths, 'safety_seconds': self.seconds}

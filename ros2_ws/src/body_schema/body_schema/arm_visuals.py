@@ -14,11 +14,12 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from .markers import aruco_dictionary, marker_corners
-from .robot import MarkerPlacement
+from .robot import MarkerPlacement, Obstacle
 from .urdf import FixedLink, Visual, dh_chain_urdf, xyz_rpy_to_transform
 
-__all__ = ['HAND_SIZE', 'WHITE', 'GREY', 'SKIN', 'LINK_RADIUS', 'segment_visuals', 'hand_visuals',
-           'quad_side', 'palm_size', 'arm_visuals', 'marker_links', 'description_urdf']
+__all__ = ['HAND_SIZE', 'WHITE', 'GREY', 'SKIN', 'LINK_RADIUS', 'HEAD_SIZE', 'segment_visuals', 'hand_visuals',
+           'quad_side', 'palm_size', 'arm_visuals', 'model_visuals', 'head_box', 'static_bodies', 'marker_links',
+           'description_urdf']
 
 #: Palm box extents in the hand frame [m]: x toward the fingers, y across, z palm thickness.
 HAND_SIZE = (0.07, 0.055, 0.025)
@@ -139,6 +140,57 @@ def arm_visuals(dh: ArrayLike, joint_names: Sequence[str], rgba: tuple = WHITE,
     return visuals
 
 
+def model_visuals(model: 'ArmModel', dh: ArrayLike | None = None, rgba: tuple = WHITE  # noqa: F821
+                  ) -> dict[str, list[Visual]]:
+    """:func:`arm_visuals` of a description: its joints, and a palm grown to hold its markers."""
+    dh = model.dh if dh is None else np.asarray(dh, dtype=float)
+    palm = palm_size(model.markers, quad_side(model.marker_dictionary, model.marker_side_length)) \
+        if model.markers else HAND_SIZE
+    return arm_visuals(dh, model.joint_names, rgba, palm)
+
+
+#: Extents [m] of the box drawn as a head behind the eyes (x, y, z in the left eye's optical frame).
+HEAD_SIZE = (0.12, 0.10, 0.10)
+
+
+def head_box(model: 'ArmModel', head_pose: ArrayLike | None = None) -> Obstacle:  # noqa: F821
+    """The head behind a robot's eyes: a 12 x 10 x 10 cm box just behind the left eye (never in
+    front of it: the cameras sit there), along the eye's optical axes.
+
+    Parameters
+    ----------
+    model : ArmModel
+        A robot with ``eyes`` (and a left eye).
+    head_pose : array_like, optional
+        Head joints [rad]; the description's ``head_pose`` if omitted.
+
+    Raises
+    ------
+    ValueError
+        If the robot has no left eye.
+    """
+    if model.eyes is None or 'left' not in model.eyes.links:
+        raise ValueError(f'robot {model.name!r} has no left eye to place a head behind')
+    left = model.camera_pose('left', head_pose)
+    pose = left.copy()
+    pose[:3, 3] = (left @ np.array([0.034, 0.0, -0.065, 1.0]))[:3]
+    return Obstacle('head', 'box', HEAD_SIZE, pose, WHITE)
+
+
+def static_bodies(model: 'ArmModel', head_pose: ArrayLike | None = None) -> tuple[Obstacle, ...]:  # noqa: F821
+    """Every static body around the arm, as the simulator draws it and the collision check sees it:
+    the description's ``obstacles``, its ``scenery`` boxes (named ``scenery_<i>``) and, for a robot
+    with eyes, the head behind them (:func:`head_box`), in :attr:`ArmModel.obstacle_names` order."""
+    out = list(model.obstacles)
+    for i, box in enumerate(model.scenery):
+        pose = np.eye(4)
+        pose[:3, 3] = box.xyz
+        out.append(Obstacle(f'scenery_{i}', 'box', box.size, pose, box.rgba))
+    if model.eyes is not None and 'left' in model.eyes.links:
+        out.append(head_box(model, head_pose))
+    return tuple(out)
+
+
 def marker_links(model: 'ArmModel', thickness: float = 0.001) -> list[FixedLink]:  # noqa: F821
     """The hand's markers as thin dark boxes on links ``marker_<name>`` of the hand."""
     s = model.marker_side_length
@@ -169,8 +221,6 @@ def description_urdf(model: 'ArmModel', dh: ArrayLike | None = None, *, prefix: 
         same ``prefix`` and ``extra_links=marker_links(model)``.
     """
     dh = model.dh if dh is None else np.asarray(dh, dtype=float)
-    palm = palm_size(model.markers, quad_side(model.marker_dictionary, model.marker_side_length)) \
-        if model.markers else HAND_SIZE
     return dh_chain_urdf(dh, model.joint_names, model.limits, base=model.base, name=model.name,
-                         root_link=model.root_frame, visuals=arm_visuals(dh, model.joint_names, rgba, palm),
+                         root_link=model.root_frame, visuals=model_visuals(model, dh, rgba),
                          extra_links=marker_links(model), prefix=prefix)

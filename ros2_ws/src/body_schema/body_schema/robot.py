@@ -22,7 +22,6 @@ from typing import Any
 import numpy as np
 import yaml
 from numpy.typing import ArrayLike, NDArray
-from scipy.spatial.transform import Rotation
 
 from . import kinematics
 
@@ -32,6 +31,9 @@ __all__ = [
     'MarkerPlacement',
     'EyeChain',
     'SceneryBox',
+    'Obstacle',
+    'OBSTACLE_SHAPES',
+    'CollisionSettings',
     'ArmModel',
     'load_robot',
     'robot_path',
@@ -115,6 +117,64 @@ class SceneryBox:
     rgba: tuple[float, float, float, float]
 
 
+#: Shapes an obstacle may have, and the size each needs [m].
+OBSTACLE_SHAPES = {'box': 'size [x, y, z] (full extents)', 'cylinder': 'radius and length (along its z)',
+                   'sphere': 'radius'}
+
+
+@dataclass(frozen=True)
+class Obstacle:
+    """A static body the arm must keep clear of (a table, a camera's stand, a keep-out zone).
+
+    Attributes
+    ----------
+    name : str
+        Unique among the obstacles and the arm's links (``allowed_pairs`` and reports name it).
+    shape : {'box', 'cylinder', 'sphere'}
+    size : tuple of float
+        box: full extents ``(x, y, z)``; cylinder: ``(radius, length)`` along its z; sphere:
+        ``(radius,)`` [m].
+    pose : ndarray, shape (4, 4)
+        The shape's centre and axes in the root frame.
+    rgba : tuple of 4 floats
+        How the simulator and the viewers draw it (alpha 0: checked, not drawn).
+    """
+
+    name: str
+    shape: str
+    size: tuple[float, ...]
+    pose: NDArray[np.float64] = field(compare=False)
+    rgba: tuple[float, float, float, float] = (0.75, 0.75, 0.72, 1.0)
+
+
+@dataclass(frozen=True)
+class CollisionSettings:
+    """How close the arm may come to the obstacles and to itself (``collision:`` in the YAML).
+
+    Attributes
+    ----------
+    margin : float
+        Least distance [m] between the arm and a static body (obstacle, scenery, head) that a
+        commanded configuration or straight joint-space path may come to: it covers how well the
+        obstacles' poses are known and the arm's calibration error.
+    self_margin : float or None
+        The same between two of the arm's links (their relative placement depends only on the
+        kinematics, known to millimetres); None: ``margin``.
+    allowed_pairs : tuple of (str, str)
+        Pairs never checked (link or obstacle names), beyond neighbouring links and the pairs the
+        collision model finds touching in every configuration (a link mounted on a table).
+    """
+
+    margin: float = 0.05
+    self_margin: float | None = None
+    allowed_pairs: tuple[tuple[str, str], ...] = ()
+
+    @property
+    def link_margin(self) -> float:
+        """The margin between two of the arm's links [m]."""
+        return self.margin if self.self_margin is None else self.self_margin
+
+
 @dataclass(frozen=True)
 class ArmModel:
     """A serial arm described by a standard DH table.
@@ -138,7 +198,21 @@ class ArmModel:
     camera : CameraIntrinsics or None
         Intrinsics shared by every camera.
     scenery : tuple of SceneryBox
-        Static context the simulator draws (no effect on the kinematics).
+        Static context the simulator draws (no effect on the kinematics); checked as obstacles
+        too (named ``scenery_<i>``).
+    obstacles : tuple of Obstacle
+        Static bodies the arm must keep clear of (``obstacles:`` in the YAML): drawn by the
+        simulator and the viewers, checked by :class:`body_schema.collision.CollisionModel`.
+    collision : CollisionSettings
+        Margin and allowed pairs of the collision check (``collision:`` in the YAML).
+    h0 : ndarray, shape (4, 4)
+        Root frame to the first (blocked) link's frame, as written in the file.
+    torso : ndarray, shape (T, 4)
+        The blocked links between ``h0`` and the first calibrated joint (held at 0), DH rows in SI;
+        ``base = h0 @ torso at q = 0``. The iKin export writes them as blocked links.
+    exports : tuple of str
+        Robot-stack formats the estimator's export writes besides the DH file and the URDF
+        (:data:`EXPORT_FORMATS`).
     noise_law : dict of str to float
         Coefficients of the pose-dependent observation-noise law fitted for this description's
         camera and marker (``noise_model:`` in the YAML; keys of
@@ -165,6 +239,11 @@ class ArmModel:
     markers: tuple[MarkerPlacement, ...] = ()
     fixed_cameras: dict[str, NDArray[np.float64]] = field(default_factory=dict, compare=False)
     scenery: tuple[SceneryBox, ...] = ()
+    obstacles: tuple[Obstacle, ...] = ()
+    collision: CollisionSettings = CollisionSettings()
+    h0: NDArray[np.float64] = field(default_factory=lambda: np.eye(4), compare=False, repr=False)
+    torso: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 4)), compare=False, repr=False)
+    exports: tuple[str, ...] = ()
     noise_law: dict[str, float] = field(default_factory=dict, compare=False)
     noise_covariance: str = ''
     extra: dict[str, Any] = field(default_factory=dict, compare=False, repr=False)
@@ -214,10 +293,41 @@ class ArmModel:
                                         f'cameras: {list(self.camera_names)}')
         return self.eyes.camera_pose(eye, head)
 
+    @property
+    def link_names(self) -> tuple[str, ...]:
+        """The arm's links that carry geometry, base to hand: ``<joint>_link`` per joint, then ``hand``
+        (the URDF links of :func:`body_schema.urdf.dh_chain_urdf`)."""
+        return link_names(self.joint_names)
+
+    @property
+    def obstacle_names(self) -> tuple[str, ...]:
+        """Every static body the collision check knows: the obstacles, the scenery boxes
+        (``scenery_<i>``) and, for a robot with a left eye, the ``head`` behind it."""
+        return obstacle_names(self.obstacles, len(self.scenery), self.eyes is not None and 'left' in self.eyes.links)
+
     def within_limits(self, q: ArrayLike, tol: float = 1e-9) -> NDArray[np.bool_]:
         """Whether each configuration lies inside the joint limits."""
         q = np.asarray(q, dtype=float)
         return np.all((q >= self.limits[:, 0] - tol) & (q <= self.limits[:, 1] + tol), axis=-1)
+
+
+#: Link name of the hand in every URDF this project builds (the frame after the last joint).
+HAND_LINK = 'hand'
+
+#: Robot-stack formats the estimator's export can write (``exports:`` in the YAML): the UR
+#: driver's kinematics calibration YAML and an iKin chain ``.ini`` (calibration_interfaces.robot_formats).
+EXPORT_FORMATS = ('ur_kinematics', 'ikin')
+
+
+def link_names(joint_names: tuple[str, ...] | list[str]) -> tuple[str, ...]:
+    """``<joint>_link`` per joint, then :data:`HAND_LINK`."""
+    return tuple(f'{j}_link' for j in joint_names) + (HAND_LINK,)
+
+
+def obstacle_names(obstacles: tuple[Obstacle, ...], n_scenery: int, head: bool) -> tuple[str, ...]:
+    """Names of the static bodies: obstacles, ``scenery_<i>``, then ``head`` if the robot has eyes."""
+    return tuple(o.name for o in obstacles) + tuple(f'scenery_{i}' for i in range(n_scenery)) \
+        + (('head',) if head else ())
 
 
 # --------------------------------------------------------------------------------------------
@@ -379,8 +489,24 @@ def robot_from_dict(data: dict[str, Any], source: str = '<dict>') -> ArmModel:
     noise_law, noise_covariance = (_noise_law(data['noise_model'], where + 'noise_model')
                                    if 'noise_model' in data else ({}, ''))
 
+    obstacles = _obstacles(data['obstacles'], where + 'obstacles', scale) if 'obstacles' in data else ()
+    links = link_names(names)
+    bodies = obstacle_names(obstacles, len(scenery), eyes is not None and 'left' in eyes.links)
+    clash = sorted(set(links) & set(bodies))
+    if clash:
+        raise RobotDescriptionError(f'{where}obstacles: names {clash} are taken by the arm\'s links or the head')
+    if len(set(bodies)) != len(bodies):
+        raise RobotDescriptionError(f'{where}obstacles: duplicate names in {list(bodies)} '
+                                    '(scenery boxes are named scenery_<i>, the eyes\' head "head")')
+    collision = _collision(data['collision'], where + 'collision', links + bodies) \
+        if 'collision' in data else CollisionSettings()
+    exports = data.get('exports', []) or []
+    if not isinstance(exports, list) or any(e not in EXPORT_FORMATS for e in exports):
+        raise RobotDescriptionError(f'{where}exports: must be a list of {list(EXPORT_FORMATS)}, got {exports!r}')
+
     known = {'name', 'root_frame', 'angle_unit', 'H0', 'torso', 'joints', 'calibration_box',
-             'eyes', 'camera', 'hand_markers', 'fixed_cameras', 'scenery', 'noise_model'}
+             'eyes', 'camera', 'hand_markers', 'fixed_cameras', 'scenery', 'noise_model',
+             'obstacles', 'collision', 'exports'}
     return ArmModel(
         name=str(data.get('name', Path(source).stem)),
         joint_names=tuple(names),
@@ -396,6 +522,11 @@ def robot_from_dict(data: dict[str, Any], source: str = '<dict>') -> ArmModel:
         markers=markers,
         fixed_cameras=fixed,
         scenery=scenery,
+        obstacles=obstacles,
+        collision=collision,
+        h0=h0,
+        torso=torso,
+        exports=tuple(str(e) for e in exports),
         noise_law=noise_law,
         noise_covariance=noise_covariance,
         extra={k: v for k, v in data.items() if k not in known},
@@ -445,12 +576,25 @@ def _eyes(e: Any, h0: NDArray[np.float64], where: str, scale: float) -> EyeChain
     return EyeChain(base=_fixed_chain(h0, torso), links=links, head_joints=heads, head_pose=head)
 
 
+def rpy_matrix(rpy: ArrayLike) -> NDArray[np.float64]:
+    """Rotation of extrinsic x-y-z angles [rad] (URDF's rpy): ``Rz(yaw) Ry(pitch) Rx(roll)``, (3, 3).
+
+    Written out rather than through scipy, whose import alone costs the launcher's validation of a
+    description most of its time.
+    """
+    r, p_, y = np.asarray(rpy, dtype=float)
+    cr, sr, cp, sp, cy, sy = np.cos(r), np.sin(r), np.cos(p_), np.sin(p_), np.cos(y), np.sin(y)
+    return np.array([[cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+                     [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+                     [-sp, cp * sr, cp * cr]])
+
+
 def _pose(entry: Any, where: str, scale: float) -> NDArray[np.float64]:
     """``{xyz, rpy}`` (rpy: extrinsic x-y-z, the file's angle unit) -> (4, 4)."""
     if not isinstance(entry, dict):
         raise RobotDescriptionError(f'{where}: must be a mapping with xyz and rpy')
     t = np.eye(4)
-    t[:3, :3] = Rotation.from_euler('xyz', _array(entry, 'rpy', (3,), where + '.') * scale).as_matrix()
+    t[:3, :3] = rpy_matrix(_array(entry, 'rpy', (3,), where + '.') * scale)
     t[:3, 3] = _array(entry, 'xyz', (3,), where + '.')
     return t
 
@@ -482,6 +626,84 @@ def _scenery(boxes: Any, where: str) -> tuple[SceneryBox, ...]:
     return tuple(out)
 
 
+def _positive(entry: dict[str, Any], key: str, where: str) -> float:
+    if key not in entry:
+        raise RobotDescriptionError(f'{where}.{key}: missing')
+    try:
+        v = float(entry[key])
+    except (TypeError, ValueError):
+        raise RobotDescriptionError(f'{where}.{key}: must be a number, got {entry[key]!r}') from None
+    if not (np.isfinite(v) and v > 0):
+        raise RobotDescriptionError(f'{where}.{key}: must be a positive length [m], got {entry[key]!r}')
+    return v
+
+
+def _obstacles(items: Any, where: str, scale: float) -> tuple[Obstacle, ...]:
+    """``obstacles:``: a list of {name, shape, size | radius (+ length), xyz, rpy, rgba}."""
+    if not isinstance(items, list):
+        raise RobotDescriptionError(f'{where}: must be a list of {{name, shape, size or radius/length, xyz, rpy}}')
+    out: list[Obstacle] = []
+    for i, o in enumerate(items):
+        w = f'{where}[{i}]'
+        if not isinstance(o, dict):
+            raise RobotDescriptionError(f'{w}: must be a mapping with name, shape, xyz, rpy and a size')
+        name = str(o.get('name', ''))
+        if not name or any(c.isspace() for c in name):
+            raise RobotDescriptionError(f'{w}.name: must be a non-empty name without spaces, got {name!r}')
+        w = f'{where}[{i}] ({name})'
+        shape = o.get('shape')
+        if shape not in OBSTACLE_SHAPES:
+            raise RobotDescriptionError(f'{w}.shape: must be one of {list(OBSTACLE_SHAPES)}, got {shape!r}')
+        if shape == 'box':
+            size = _array(o, 'size', (3,), w + '.')
+            if np.any(size <= 0):
+                raise RobotDescriptionError(f'{w}.size: extents must be > 0 m, got {size.tolist()}')
+            dims = tuple(size.tolist())
+        elif shape == 'cylinder':
+            dims = (_positive(o, 'radius', w), _positive(o, 'length', w))
+        else:
+            dims = (_positive(o, 'radius', w),)
+        pose = _pose({**{k: o[k] for k in ('xyz',) if k in o}, 'rpy': o.get('rpy', [0.0, 0.0, 0.0])}, w, scale)
+        rgba = _array(o, 'rgba', (4,), w + '.') if 'rgba' in o else np.array(Obstacle.rgba)
+        if np.any((rgba < 0) | (rgba > 1)):
+            raise RobotDescriptionError(f'{w}.rgba: colours must be in [0, 1], got {rgba.tolist()}')
+        out.append(Obstacle(name, str(shape), dims, pose, tuple(float(c) for c in rgba)))
+    return tuple(out)
+
+
+def _collision(c: Any, where: str, names: tuple[str, ...]) -> CollisionSettings:
+    """``collision:``: margin [m] and allowed_pairs (pairs of link or obstacle names)."""
+    if not isinstance(c, dict):
+        raise RobotDescriptionError(f'{where}: must be a mapping with margin and/or allowed_pairs')
+    unknown = sorted(set(c) - {'margin', 'self_margin', 'allowed_pairs'})
+    if unknown:
+        raise RobotDescriptionError(f'{where}: unknown keys {unknown}; expected margin, self_margin, allowed_pairs')
+    margins: dict[str, float | None] = {'margin': CollisionSettings.margin, 'self_margin': None}
+    for key in margins:
+        if key not in c:
+            continue
+        try:
+            v = float(c[key])
+        except (TypeError, ValueError):
+            raise RobotDescriptionError(f'{where}.{key}: must be a number [m], got {c[key]!r}') from None
+        if not (np.isfinite(v) and 0 <= v <= 1.0):
+            raise RobotDescriptionError(f'{where}.{key}: must be in [0, 1] m, got {c[key]!r}')
+        margins[key] = v
+    pairs = c.get('allowed_pairs', []) or []
+    if not isinstance(pairs, list):
+        raise RobotDescriptionError(f'{where}.allowed_pairs: must be a list of [name, name] pairs')
+    out = []
+    for i, pair in enumerate(pairs):
+        if not (isinstance(pair, (list, tuple)) and len(pair) == 2):
+            raise RobotDescriptionError(f'{where}.allowed_pairs[{i}]: must be a pair [name, name], got {pair!r}')
+        bad = [str(n) for n in pair if str(n) not in names]
+        if bad:
+            raise RobotDescriptionError(f'{where}.allowed_pairs[{i}]: unknown names {bad}; links and obstacles '
+                                        f'are {list(names)}')
+        out.append((str(pair[0]), str(pair[1])))
+    return CollisionSettings(float(margins['margin']), margins['self_margin'], tuple(out))
+
+
 def _markers(m: Any, where: str, scale: float) -> tuple[str, float, tuple[MarkerPlacement, ...]]:
     if not isinstance(m, dict):
         raise RobotDescriptionError(f'{where[:-1]}: must be a mapping')
@@ -498,9 +720,10 @@ def _markers(m: Any, where: str, scale: float) -> tuple[str, float, tuple[Marker
             raise RobotDescriptionError(f'{w}id: must be a unique non-negative integer, got {mid}')
         ids.add(mid)
         t = np.eye(4)
-        t[:3, :3] = Rotation.from_euler('xyz', rpy).as_matrix()
+        t[:3, :3] = rpy_matrix(rpy)
         t[:3, 3] = xyz
         out.append(MarkerPlacement(str(mk.get('name', f'marker{mid}')), mid, t))
     if not out:
         raise RobotDescriptionError(f'{where}markers: at least one marker is needed')
     return str(m.get('dictionary', 'DICT_4X4_50')), side, tuple(out)
+

@@ -109,7 +109,7 @@ def _origin(t: ArrayLike) -> str:
             f'rpy="{" ".join(_num(v) for v in rpy)}"/>')
 
 
-def _visual_xml(v: Visual, i: int) -> str:
+def _geometry_xml(v: Visual) -> str:
     if v.shape == 'box':
         geom = f'<box size="{" ".join(_num(s) for s in v.size)}"/>'
     elif v.shape == 'cylinder':
@@ -118,12 +118,21 @@ def _visual_xml(v: Visual, i: int) -> str:
         geom = f'<sphere radius="{_num(v.size[0])}"/>'
     else:
         geom = f'<mesh filename={quoteattr(v.filename)} scale="{" ".join(_num(s) for s in v.size)}"/>'
+    return geom
+
+
+def _visual_xml(v: Visual, i: int) -> str:
     rgba = ' '.join(_num(c) for c in v.rgba)
-    return (f'    <visual>\n      {_origin(v.origin)}\n      <geometry>{geom}</geometry>\n'
+    return (f'    <visual>\n      {_origin(v.origin)}\n      <geometry>{_geometry_xml(v)}</geometry>\n'
             f'      <material name="m{i}"><color rgba="{rgba}"/></material>\n    </visual>\n')
 
 
-def _link_xml(name: str, visuals: Sequence[Visual], counter: list[int], mass: float) -> str:
+def _collision_xml(v: Visual) -> str:
+    return f'    <collision>\n      {_origin(v.origin)}\n      <geometry>{_geometry_xml(v)}</geometry>\n    </collision>\n'
+
+
+def _link_xml(name: str, visuals: Sequence[Visual], counter: list[int], mass: float,
+              collision: bool = False) -> str:
     body = ''
     if mass > 0:
         # A tiny inertial keeps simulators from inventing 1 kg / unit inertia per link.
@@ -132,6 +141,8 @@ def _link_xml(name: str, visuals: Sequence[Visual], counter: list[int], mass: fl
     for v in visuals:
         body += _visual_xml(v, counter[0])
         counter[0] += 1
+    if collision:
+        body += ''.join(_collision_xml(v) for v in visuals if v.shape != 'mesh')
     return f'  <link name={quoteattr(name)}>\n{body}  </link>\n'
 
 
@@ -225,7 +236,8 @@ def dh_chain_urdf(dh: ArrayLike, joint_names: Sequence[str], limits: ArrayLike, 
                   base: ArrayLike | None = None, name: str = 'arm', root_link: str = 'root_link',
                   hand_link: str = 'hand', visuals: Mapping[str, Sequence[Visual]] | None = None,
                   extra_links: Sequence[FixedLink] = (), velocity: float = 1.0,
-                  effort: float = 10.0, link_mass: float = 0.0, prefix: str = '') -> str:
+                  effort: float = 10.0, link_mass: float = 0.0, prefix: str = '',
+                  collision: bool = False) -> str:
     """URDF text of a standard-DH serial chain.
 
     Parameters
@@ -253,6 +265,9 @@ def dh_chain_urdf(dh: ArrayLike, joint_names: Sequence[str], limits: ArrayLike, 
     prefix : str
         Prepended to every link and joint name except ``root_link`` (``visuals`` keys and the
         extra links' names and parents are given without it).
+    collision : bool
+        Also write each ``visuals`` primitive (not meshes, not the extra links') as the link's
+        ``<collision>`` geometry, in the same order (what :mod:`body_schema.collision` checks).
 
     Returns
     -------
@@ -286,11 +301,11 @@ def dh_chain_urdf(dh: ArrayLike, joint_names: Sequence[str], limits: ArrayLike, 
     visuals = {(k if k == root_link else f'{prefix}{k}'): v for k, v in visuals.items()}
     links: list[str] = [root_link]
     xml = [f'<?xml version="1.0"?>\n<robot name={quoteattr(name)}>\n']
-    xml.append(_link_xml(root_link, visuals.get(root_link, ()), counter, link_mass))
+    xml.append(_link_xml(root_link, visuals.get(root_link, ()), counter, link_mass, collision))
     limit_rows = iter(limits)
     for joint, parent, child, t in _chain_joints(dh, names, base_t, root_link, hand_link, prefix):
         links.append(child)
-        xml.append(_link_xml(child, visuals.get(child, ()), counter, link_mass))
+        xml.append(_link_xml(child, visuals.get(child, ()), counter, link_mass, collision))
         if t is not None:
             xml.append(_fixed_xml(joint, parent, child, t))
             continue

@@ -84,10 +84,50 @@ def test_ur5e_has_a_fixed_camera_and_the_published_dh_table():
         ur.camera_pose('right')
 
 
-def test_icub_cameras_are_its_eyes_and_its_torso_is_scenery():
+def test_icub_cameras_are_its_eyes_and_its_torso_is_obstacles():
     icub = load_robot('icub_right_arm')
     assert icub.camera_names == ('left', 'right') and not icub.fixed_cameras
-    assert [b.size for b in icub.scenery] == [(0.12, 0.15, 0.32), (0.10, 0.24, 0.08)]
+    assert [(o.name, o.shape, o.size) for o in icub.obstacles] == [
+        ('chest', 'box', (0.12, 0.15, 0.32)), ('hips', 'box', (0.10, 0.24, 0.08))]
+    np.testing.assert_allclose(icub.obstacles[0].pose[:3, 3], [0.01, 0.0, 0.05])
+    assert icub.obstacle_names == ('chest', 'hips', 'head')          # the head behind the eyes too
+    assert icub.collision.margin == 0.02 and icub.collision.link_margin == 0.02
+    assert icub.collision.allowed_pairs == (('r_shoulder_yaw_link', 'chest'), ('hand', 'r_wrist_prosup_link'))
+    assert icub.exports == ('ikin',) and icub.torso.shape == (3, 4)
+    # base = H0 times the blocked torso at 0
+    from body_schema.kinematics import forward_kinematics
+    np.testing.assert_allclose(forward_kinematics(icub.h0, icub.torso, np.zeros(3)), icub.base, atol=1e-12)
+
+
+def test_ur5e_stands_on_a_table_beside_its_cameras_stand():
+    ur = load_robot('ur5e')
+    table, stand = ur.obstacles
+    assert (table.name, table.shape, stand.name, stand.shape, stand.size) == \
+        ('table', 'box', 'camera_stand', 'cylinder', (0.025, 1.2))
+    assert table.pose[2, 3] + table.size[2] / 2 == pytest.approx(0.0)   # its top is the mounting plane
+    assert ur.collision.margin == 0.05 and ur.collision.link_margin == 0.01 and ur.exports == ('ur_kinematics',)
+
+
+@pytest.mark.parametrize('mutate, message', [
+    (lambda d: d['obstacles'][0].__setitem__('shape', 'cone'), r"obstacles\[0\] \(table\)\.shape: must be one of"),
+    (lambda d: d['obstacles'][1].pop('radius'), r'obstacles\[1\] \(camera_stand\)\.radius: missing'),
+    (lambda d: d['obstacles'][1].__setitem__('length', -1), r'camera_stand\)\.length: must be a positive length'),
+    (lambda d: d['obstacles'][0].__setitem__('size', [1, 1]), r'table\)\.size: expected shape \(3,\)'),
+    (lambda d: d['obstacles'][0].pop('xyz'), r'table\)\.xyz: missing'),
+    (lambda d: d['obstacles'][1].__setitem__('name', 'table'), r'obstacles: duplicate names'),
+    (lambda d: d['obstacles'][1].__setitem__('name', 'hand'), r"obstacles: names \['hand'\] are taken"),
+    (lambda d: d['collision'].__setitem__('margin', -0.1), r'collision\.margin: must be in \[0, 1\] m'),
+    (lambda d: d['collision'].__setitem__('self_margin', 'far'), r'collision\.self_margin: must be a number'),
+    (lambda d: d['collision'].__setitem__('allowed_pairs', [['hand', 'tabel']]),
+     r"collision\.allowed_pairs\[0\]: unknown names \['tabel'\]"),
+    (lambda d: d['collision'].__setitem__('padding', 1), r"collision: unknown keys \['padding'\]"),
+    (lambda d: d.__setitem__('exports', ['urdf']), r"exports: must be a list of \['ur_kinematics', 'ikin'\]"),
+])
+def test_bad_obstacles_and_collision_settings_name_the_field(tmp_path, mutate, message):
+    doc = yaml.safe_load(robot_path('ur5e').read_text())
+    mutate(doc)
+    with pytest.raises(RobotDescriptionError, match=message):
+        load_robot(_write(tmp_path, doc))
 
 
 def test_fixed_camera_entries_are_validated():

@@ -317,7 +317,10 @@ def node_parameters(spec: RunSpec, settings: GraphSettings = GraphSettings(), sy
                 'physics_step': settings.physics_step, 'max_joint_speed_deg': settings.max_joint_speed_deg,
                 'image_width': settings.image_width, 'image_height': settings.image_height},
         'estimator': {'initial_seed': seeds.guess, **noise},
-        'selector': {'strategy': method.strategy, 'iterations': spec.iterations, 'seed': seeds.selector, **noise},
+        # The selector times its commands with the simulator's speed limit (else a move would take
+        # the parameter file's 30 deg/s of sim time: 25-100 physics steps instead of one or two).
+        'selector': {'strategy': method.strategy, 'iterations': spec.iterations, 'seed': seeds.selector,
+                     'max_joint_speed_deg': settings.max_joint_speed_deg, **noise},
     })
 
 

@@ -31,7 +31,7 @@ from body_schema.noise import NOISE_MODELS
 from calibration_interfaces import mcap_reader
 from calibration_interfaces.parameters import read_params_file
 
-__all__ = ['bag_contents', 'render_report', 'summary_record', 'estimator_params_file', 'main']
+__all__ = ['bag_contents', 'safety_record', 'render_report', 'summary_record', 'estimator_params_file', 'main']
 
 
 def estimator_params_file() -> Path:
@@ -46,7 +46,37 @@ def bag_contents(path: str | Path) -> list[tuple[str, str, int]]:
     return sorted((t.name, t.type, t.count) for t in mcap_reader.summary(path).topics.values())
 
 
-def render_report(ev: Evaluation, bag: Path, title: str, wall_seconds: float | None) -> str:
+def safety_record(path: str | Path) -> dict[str, object]:
+    """What the bag says about safety: the selector's refusals (``/calibration/progress``) and the
+    simulator's last contact report (``/diagnostics``, :data:`calibration_interfaces.outcome.CONTACT_DIAGNOSTIC`).
+
+    Keys: ``refused``, ``refused_paths``, ``pose_list`` (iterations from a pose list), ``contacts``,
+    ``contact_checks``, ``contact_pairs`` (``'a-b': n``), ``min_clearance_m`` (None: no report in the bag).
+    """
+    from calibration_interfaces.outcome import CONTACT_DIAGNOSTIC, decode_contacts
+
+    refused = refused_paths = pose_list = 0
+    contact = None
+    for topic, _t, msg in mcap_reader.read_messages(path, ['/calibration/progress', '/diagnostics']):
+        if topic == '/calibration/progress':
+            r = json.loads(msg.data)
+            refused += int(r.get('refused', 0))
+            refused_paths += int(r.get('refused_paths', 0))
+            pose_list += r.get('source') == 'pose_list'
+        else:
+            for status in msg.status:
+                if status.name == CONTACT_DIAGNOSTIC:
+                    contact = decode_contacts({v.key: v.value for v in status.values})
+    return {'refused': refused, 'refused_paths': refused_paths, 'pose_list': pose_list,
+            'contacts': None if contact is None else contact.contacts,
+            'contact_checks': None if contact is None else contact.checks,
+            'contact_pairs': {} if contact is None else {f'{a}-{b}': n for (a, b), n in contact.pairs.items()},
+            'min_clearance_m': None if contact is None or not math.isfinite(contact.min_clearance)
+            else contact.min_clearance}
+
+
+def render_report(ev: Evaluation, bag: Path, title: str, wall_seconds: float | None,
+                  safety: dict[str, object] | None = None) -> str:
     """The Markdown report of one run."""
     last = ev.rows[-1]
     outcomes = ev.outcome_counts
@@ -73,6 +103,7 @@ def render_report(ev: Evaluation, bag: Path, title: str, wall_seconds: float | N
              'is the bottleneck; one well below it says the covariance is pessimistic.', '',
              'Outcomes: ' + ', '.join(f'{k} {v}' for k, v in sorted(outcomes.items())) +
              f'; accumulated joint movement {last.movement_deg:.0f} deg.', '',
+             *(_safety_lines(safety) if safety else []),
              '![error vs iteration](error_vs_iteration.png)', '',
              '![error vs movement](error_vs_movement.png)', '',
              '## Bag contents', '', '| topic | type | messages |', '|---|---|---|']
@@ -87,14 +118,24 @@ def render_report(ev: Evaluation, bag: Path, title: str, wall_seconds: float | N
     return '\n'.join(lines)
 
 
-def summary_record(ev: Evaluation, title: str, wall_seconds: float | None) -> dict[str, object]:
+def _safety_lines(s: dict[str, object]) -> list[str]:
+    contacts = ('no contact report in the bag' if s['contacts'] is None else
+                f"{s['contacts']} of {s['contact_checks']} checked configurations in contact"
+                + (f" ({', '.join(f'{k} {v}' for k, v in s['contact_pairs'].items())})" if s['contact_pairs'] else '')
+                + ('' if s['min_clearance_m'] is None else f"; least clearance to an obstacle {1e3 * s['min_clearance_m']:.0f} mm"))
+    return [f"Safety: the selector refused {s['refused']} candidates inside a collision margin and "
+            f"{s['refused_paths']} behind one; {s['pose_list']} targets came from a pose list; simulator: {contacts}.", '']
+
+
+def summary_record(ev: Evaluation, title: str, wall_seconds: float | None,
+                   safety: dict[str, object] | None = None) -> dict[str, object]:
     """The run's headline figures as plain JSON values (NaN as None), the same as ``report.md``'s.
 
     Keys: ``title``, ``wall_seconds``, ``iterations``, ``outcomes`` (count per outcome),
     ``initial`` / ``final`` / ``online`` (``position_mm``, ``orientation_deg``), ``information_limit``,
     ``movement_deg``, ``identifiable``, ``parameters``, ``nees_identifiable``, ``nees_band`` (95 %),
     ``unidentifiable``, ``extrinsics`` (block -> ``error`` and ``sigma``, mm and deg),
-    ``max_online_offline_difference``.
+    ``max_online_offline_difference``, ``safety`` (:func:`safety_record`, when given).
     """
     def num(v: float) -> float | None:
         return None if v is None or not math.isfinite(v) else float(v)
@@ -116,6 +157,7 @@ def summary_record(ev: Evaluation, title: str, wall_seconds: float | None) -> di
         'extrinsics': {k: {'error': [num(v) for v in e], 'sigma': [num(v) for v in sg]}
                        for k, (e, sg) in ev.extrinsics.items()},
         'max_online_offline_difference': num(ev.max_online_offline_difference),
+        **({'safety': safety} if safety is not None else {}),
     }
 
 
@@ -153,12 +195,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         ev = evaluate_bag(args.bag, EvaluationSettings.from_parameters(values))
         write_csv(ev.rows, out / 'metrics.csv')
         plot_rows(ev.rows, out, title=args.title)
-        text = render_report(ev, args.bag, args.title or args.bag.stem, args.wall_seconds)
+        safety = safety_record(args.bag)
+        text = render_report(ev, args.bag, args.title or args.bag.stem, args.wall_seconds, safety)
     except (FileNotFoundError, ValueError) as exc:
         print(f'calibration_report: {exc}', file=sys.stderr)
         return 1
     (out / 'report.md').write_text(text)
-    record = summary_record(ev, args.title or args.bag.stem, args.wall_seconds)
+    record = summary_record(ev, args.title or args.bag.stem, args.wall_seconds, safety)
     (out / 'summary.json').write_text(json.dumps(record, indent=1) + '\n')
     print(summary_text(ev))
     print(f'report: {out / "report.md"}')

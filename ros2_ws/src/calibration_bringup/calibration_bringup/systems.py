@@ -79,8 +79,8 @@ def paper_system(tuned: Mapping[str, float] = PAPER_TUNED) -> dict[str, dict[str
         'estimator': {'estimator': 'ekf', 'iterations': 1, 'gate_probability': 0.0, **q, **cn},
         # C = C0 / eta + a arctan(b p_x) (eq. 8) with C0 the expected trace after the next update
         # of P + Q (eq. 7); the smoothed Beta from a flat prior Be(1, 1) (eqs. 12-14); NLopt's
-        # DIRECT (Jones et al.); repeated configurations allowed.
-        'selector': {'criterion': 'a_optimal', 'occlusion_mode': 'paper', 'occlusion_prior': 'flat',
+        # DIRECT (Jones et al.); repeated configurations allowed; no collision check (the paper has none).
+        'selector': {'collision_check': False, 'criterion': 'a_optimal', 'occlusion_mode': 'paper', 'occlusion_prior': 'flat',
                      'optimizer': 'direct', 'algorithm': 'DIRECT', 'max_evals': int(t['max_evals']),
                      'repeat_tolerance': 0.0,
                      'penalty_a': float(t['penalty_a']), 'penalty_b': float(t['penalty_b']),
@@ -150,6 +150,8 @@ ABLATION: tuple[AblationStep, ...] = (
     AblationStep('batch', 'batched search: 512 Sobol candidates, BOBYQA refinement and snapping (instead of '
                  "DIRECT)", _keys('selector', 'optimizer', 'algorithm', 'max_evals')),
     AblationStep('no-repeats', 'no configuration selected twice', _keys('selector', 'repeat_tolerance')),
+    AblationStep('collision', 'targets and paths refused within the collision margins (the torso, the head, the '
+                 'arm itself)', _keys('selector', 'collision_check')),
 )
 
 

@@ -10,6 +10,11 @@ The estimator publishes one ``diagnostic_msgs/DiagnosticStatus`` per attempt on
 encoded by :func:`encode_status` / decoded by :func:`decode_status`, so the selector and the
 offline evaluation read them through this module rather than through a string convention.
 
+The simulator checks the real arm for contacts with the obstacles and itself while it moves and
+publishes what it has seen on ``/diagnostics`` too (one status named :data:`CONTACT_DIAGNOSTIC`,
+keys :class:`ContactKey`, :func:`encode_contacts` / :func:`decode_contacts`): level OK while there
+was none, ERROR after the first.
+
 The detector judges every camera frame (:class:`FrameStatus`: the hand detected, no marker, or an
 input it cannot judge) and publishes that verdict per frame on ``/diagnostics``
 (``diagnostic_msgs/DiagnosticArray``, one status per eye named :data:`DETECTOR_DIAGNOSTIC`, keys
@@ -27,7 +32,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 __all__ = ['Outcome', 'StatusKey', 'UpdateStatus', 'encode_status', 'decode_status', 'StatusFormatError',
-           'FrameStatus', 'FrameKey', 'FrameReport', 'DETECTOR_DIAGNOSTIC', 'encode_frame', 'decode_frame']
+           'FrameStatus', 'FrameKey', 'FrameReport', 'DETECTOR_DIAGNOSTIC', 'encode_frame', 'decode_frame',
+           'CONTACT_DIAGNOSTIC', 'ContactKey', 'ContactStatus', 'encode_contacts', 'decode_contacts']
 
 T = TypeVar('T')
 
@@ -203,3 +209,61 @@ def _parsed(what: str, values: Mapping[str, str], build: Callable[[], T]) -> T:
         raise StatusFormatError(f'{what} lacks key {exc.args[0]!r}; has {sorted(values)}') from None
     except ValueError as exc:
         raise StatusFormatError(f'{what} {dict(values)!r} does not parse: {exc}') from exc
+
+
+#: ``name`` of the simulator's contact DiagnosticStatus (``hardware_id`` is the robot's name).
+CONTACT_DIAGNOSTIC = 'icub_sim/contacts'
+
+
+class ContactKey(enum.StrEnum):
+    """Keys of the simulator's contact DiagnosticStatus values."""
+
+    CHECKS = 'checks'                       # configurations checked so far
+    CONTACTS = 'contacts'                   # of them, configurations with a contact
+    PAIRS = 'pairs'                         # 'a:b=n;c:d=m': configurations in contact per body pair
+    MIN_CLEARANCE = 'min_clearance_m'       # least distance arm - static body seen [m], '%.6f' ('inf': none)
+    MIN_CLEARANCE_PAIR = 'min_clearance_pair'   # 'link:body'
+    STAMP = 'stamp'                         # sim time of the report [s]
+
+
+@dataclass(frozen=True)
+class ContactStatus:
+    """The simulator's contact report as carried by ``/diagnostics``."""
+
+    checks: int
+    contacts: int
+    pairs: dict[tuple[str, str], int]
+    min_clearance: float
+    min_clearance_pair: tuple[str, str]
+    stamp: float
+
+    @property
+    def level(self) -> int:
+        """OK (0) without contacts, ERROR (2) with."""
+        return 0 if self.contacts == 0 else 2
+
+
+def encode_contacts(checks: int, contacts: int, pairs: Mapping[tuple[str, str], int], min_clearance: float,
+                    min_clearance_pair: tuple[str, str], stamp: float) -> dict[str, str]:
+    """The key/value strings of a contact report."""
+    return {ContactKey.CHECKS.value: str(int(checks)), ContactKey.CONTACTS.value: str(int(contacts)),
+            ContactKey.PAIRS.value: ';'.join(f'{a}:{b}={n}' for (a, b), n in sorted(pairs.items())),
+            ContactKey.MIN_CLEARANCE.value: f'{min_clearance:.6f}',
+            ContactKey.MIN_CLEARANCE_PAIR.value: ':'.join(min_clearance_pair),
+            ContactKey.STAMP.value: f'{stamp:.9f}'}
+
+
+def decode_contacts(values: Mapping[str, str]) -> ContactStatus:
+    """The report :func:`encode_contacts` wrote; a :class:`StatusFormatError` names what is wrong."""
+    def pairs(text: str) -> dict[tuple[str, str], int]:
+        out = {}
+        for item in filter(None, text.split(';')):
+            names, _, n = item.rpartition('=')
+            a, _, b = names.partition(':')
+            out[(a, b)] = int(n)
+        return out
+
+    return _parsed('contact status', values, lambda: ContactStatus(
+        int(values[ContactKey.CHECKS]), int(values[ContactKey.CONTACTS]), pairs(values[ContactKey.PAIRS]),
+        float(values[ContactKey.MIN_CLEARANCE]), tuple(values[ContactKey.MIN_CLEARANCE_PAIR].split(':', 1)),
+        float(values[ContactKey.STAMP])))

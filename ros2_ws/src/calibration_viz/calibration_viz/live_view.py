@@ -12,6 +12,8 @@ error curve of the estimates so far. Scene node names (what a client receives):
     Camera frustums (OpenCV optical frame, as ``/camera/<eye>/pose``) with the image.
 ``/observations``
     One ellipsoid per observed hand position (batched meshes).
+``/obstacles/<name>``
+    The description's static bodies (the collision check's obstacles), half transparent.
 """
 from __future__ import annotations
 
@@ -134,6 +136,11 @@ class LiveView:
                 title='error vs estimate', aspect=1.6, scales={'x': {'time': False}})
         else:
             self._uplot.data = data
+
+    def add_obstacles(self, meshes: list) -> None:
+        """Draw the static bodies once: ``(name, vertices, faces, rgb)`` (:func:`calibration_viz.plan_view.obstacle_meshes`)."""
+        for name, vertices, faces, rgb in meshes:
+            self.server.scene.add_mesh_simple(f'/obstacles/{name}', vertices, faces, color=rgb, opacity=0.5)
 
     def stop(self) -> None:
         """Close the server (idempotent)."""

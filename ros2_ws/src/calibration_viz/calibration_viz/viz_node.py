@@ -47,6 +47,7 @@ from calibration_interfaces.messages import (MessageFormatError, joints_in_order
 from calibration_interfaces.node_util import WarnOnce, declare_settings, qos_profile, spin_node
 
 from .live_view import LiveView
+from .plan_view import obstacle_meshes
 from .scene import SceneState
 from .settings import VizSettings
 
@@ -61,6 +62,7 @@ class VizNode(Node):
         self.state = SceneState(self.model, history=s.history, n_configs=s.error_configs)
         self._warn = WarnOnce(self)
         self.view = LiveView(s.host, s.port)
+        self.view.add_obstacles(obstacle_meshes(self.model))
         self._image_period = 1.0 / s.image_rate if s.image_rate > 0 else float('inf')
         self._last_image: dict[str, float] = {}
 

@@ -40,6 +40,7 @@ from calibration_interfaces.contract import optical_frame
 from calibration_interfaces.dh_file import write_dh_file
 from calibration_interfaces.outcome import Outcome
 from calibration_interfaces.parameters import setting
+from calibration_interfaces.robot_formats import write_exports
 
 __all__ = ['EstimatorSettings', 'OnlineEstimator', 'ESTIMATORS']
 
@@ -394,7 +395,8 @@ class OnlineEstimator:
 
     def export(self, directory: str | Path, stem: str = 'calibrated') -> tuple[Path, Path]:
         """Write ``<stem>_dh.yaml`` (table with one-sigma, :mod:`calibration_interfaces.dh_file`) and
-        ``<stem>.urdf``; return both paths."""
+        ``<stem>.urdf``, and the formats of the description's ``exports``
+        (:func:`calibration_interfaces.robot_formats.write_exports`); return the first two paths."""
         directory = Path(directory)
         n_dh = self.model.n_params
         sigma_all = np.sqrt(np.diag(self.P))
@@ -416,6 +418,8 @@ class OnlineEstimator:
             (directory / f'{stem}_camera_static_transform.yaml').write_text(yaml.safe_dump(tf, sort_keys=False))
         urdf_path = directory / f'{stem}.urdf'
         urdf_path.write_text(model_urdf(self.calibrated_model(), extra_links=self.frame_links()))
+        # The robot stack's own formats the description asks for (UR kinematics YAML, iKin .ini).
+        write_exports(directory, self.model, self.dh, stem)
         return yaml_path, urdf_path
 
     def frame_links(self) -> tuple[FixedLink, ...]:

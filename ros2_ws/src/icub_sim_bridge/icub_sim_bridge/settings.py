@@ -41,6 +41,9 @@ class SimSettings:
     # Up to 10 turns a second: the arm is kinematic, so any speed is exact, and a fast arm saves
     # the experiment sim ticks (calibration_bringup.experiment.GraphSettings).
     max_joint_speed_deg: float = setting(30.0, 'Speed limit of every joint [deg/s]', (1.0, 3600.0))
+    contact_check: bool = setting(True, 'Check the real arm for contacts with the obstacles and itself at every joint '
+                                        'state while it moves (icub_sim_bridge.contacts) and report them on '
+                                        '/diagnostics (about 0.5-1 ms a check)')
     initial_positions_deg: tuple[float, ...] = setting((), 'Arm joints at start [deg]; empty = centre of the '
                                                        'calibration box (or random_start)', array_type='double')
     random_start: bool = setting(False, 'With empty initial_positions_deg: start at a configuration drawn '

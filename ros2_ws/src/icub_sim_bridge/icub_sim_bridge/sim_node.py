@@ -28,6 +28,13 @@ Topics published
 /robot_description : std_msgs/String
     URDF of the real arm (links as :func:`body_schema.urdf.chain_transforms` names the TF
     frames, the simulator's geometry); transient local; published again when the body changes.
+/diagnostics : diagnostic_msgs/DiagnosticArray
+    With ``contact_check``: the real arm checked for contacts with the description's obstacles
+    (drawn in the images too) and with itself at every joint state while it moves
+    (:class:`icub_sim_bridge.contacts.ContactMonitor`), one status named
+    :data:`calibration_interfaces.outcome.CONTACT_DIAGNOSTIC` (checks, contacts, pairs, least
+    clearance to a static body) once a second of sim time and at once on a new contact; level OK,
+    ERROR after a contact (also logged).
 
 Topics subscribed
 -----------------
@@ -62,6 +69,7 @@ from typing import Any
 
 import numpy as np
 from builtin_interfaces.msg import Time as TimeMsg
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseStamped
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
@@ -80,9 +88,11 @@ from calibration_interfaces.contract import RELIABLE, optical_frame
 from calibration_interfaces.dh_file import read_dh_file
 from calibration_interfaces.messages import extrinsics_to_msg, matrix_to_pose_msg, table_to_msg
 from calibration_interfaces.node_util import WarnThrottled, declare_settings, qos_profile, spin_node
+from calibration_interfaces.outcome import CONTACT_DIAGNOSTIC, ContactStatus, encode_contacts
 
 from .body_change import parse_body_change
 from .camera import degrade
+from .contacts import ContactMonitor
 from .motion import CommandError, TrajectoryFollower, validate_command
 from .settings import SimSettings
 from .world import SimWorld
@@ -141,6 +151,12 @@ class SimNode(Node):
             head = np.radians(np.asarray(s.head_pose_deg, dtype=float)) if s.head_pose_deg else r.eyes.head_pose
             if head.shape != (len(r.eyes.head_joints),):
                 raise ValueError(f'head_pose_deg needs {len(r.eyes.head_joints)} angles, got {list(s.head_pose_deg)}')
+        self._head = head
+        self.real_robot = real_robot
+        self.contacts = ContactMonitor(real_robot, true_dh, head_pose=head) if s.contact_check else None
+        self._q_checked: np.ndarray | None = None
+        self._contacts_reported = -1
+        self._next_contact_report = 0
         self.world = SimWorld(real_robot, true_dh, marker_dictionary=s.marker_dictionary or None,
                               marker_ids=list(s.marker_ids) or None,
                               marker_side_length=s.marker_side_length or None,
@@ -184,6 +200,7 @@ class SimNode(Node):
         self.pub_true_extrinsics = self.create_publisher(Float64MultiArray, '/body_schema/true_extrinsics',
                                                          qos_profile('/body_schema/true_extrinsics'))
         self.pub_description = self.create_publisher(String, '/robot_description', qos_profile('/robot_description'))
+        self.pub_diagnostics = self.create_publisher(DiagnosticArray, '/diagnostics', qos_profile('/diagnostics'))
         self.pub_img, self.pub_info, self.pub_pose = {}, {}, {}
         for eye in self.cameras:
             for pubs, cls, suffix in ((self.pub_img, Image, 'image_raw'), (self.pub_info, CameraInfo, 'camera_info'),
@@ -259,6 +276,34 @@ class SimNode(Node):
         self._q_last_js = q
         self.pub_js.publish(js)
         self.pub_clock.publish(ClockMsg(clock=stamp))
+        self._check_contacts(q, stamp)
+
+    def _check_contacts(self, q: np.ndarray, stamp: TimeMsg) -> None:
+        """Check the arm where it moved to; report at once on a new contact, else once a sim second."""
+        if self.contacts is None:
+            return
+        if self._q_checked is None or not np.array_equal(q, self._q_checked):
+            self._q_checked = q.copy()
+            pairs = self.contacts.check(q)
+            if pairs:
+                self._warn('contact', f'contact at {np.round(np.degrees(q), 1).tolist()} deg: '
+                           + ', '.join(f'{a} - {b}' for a, b in pairs))
+        r = self.contacts.report
+        if r.contacts != self._contacts_reported or self.sim_ns >= self._next_contact_report:
+            self._contacts_reported = r.contacts
+            self._next_contact_report = self.sim_ns + 1_000_000_000
+            values = encode_contacts(r.checks, r.contacts, r.pairs, r.min_clearance, r.min_clearance_pair,
+                                     self.sim_ns / 1e9)
+            status = ContactStatus(r.checks, r.contacts, dict(r.pairs), r.min_clearance, r.min_clearance_pair, 0.0)
+            msg = DiagnosticArray()
+            msg.header.stamp = stamp
+            msg.status = [DiagnosticStatus(
+                level=bytes([status.level]), name=CONTACT_DIAGNOSTIC, hardware_id=self.robot.name,
+                message=(f'no contact in {r.checks} checked configurations' if not r.contacts else
+                         f'{r.contacts} of {r.checks} checked configurations in contact: '
+                         + ', '.join(f'{a} - {b}' for a, b in sorted(r.pairs))),
+                values=[KeyValue(key=k, value=v) for k, v in values.items()])]
+            self.pub_diagnostics.publish(msg)
 
     # ------------------------------------------------------------------------------------------
     # Loop and commands
@@ -307,6 +352,11 @@ class SimNode(Node):
             raise RuntimeError('the body change was applied already')
         self.true_dh = self.true_dh + self.body_change
         self.world.set_dh(self.true_dh)
+        if self.contacts is not None:      # the changed body is the one checked from now on (counts kept)
+            report = self.contacts.report
+            self.contacts.close()
+            self.contacts = ContactMonitor(self.real_robot, self.true_dh, head_pose=self._head)
+            self.contacts.report = report
         self.body_changed = True
         self._publish_real_arm()
         text = f'the real robot changed ({self.settings.body_change}) at sim time {self.sim_ns / 1e9:.3f} s'
@@ -340,6 +390,8 @@ class SimNode(Node):
 
     def destroy_node(self) -> None:
         self.world.close()
+        if self.contacts is not None:
+            self.contacts.close()
         super().destroy_node()
 
 

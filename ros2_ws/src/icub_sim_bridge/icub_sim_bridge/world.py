@@ -26,7 +26,7 @@ import pybullet as p
 from numpy.typing import ArrayLike, NDArray
 from pybullet_utils import bullet_client
 
-from body_schema.arm_visuals import HAND_SIZE, WHITE, arm_visuals, palm_size, quad_side
+from body_schema.arm_visuals import HAND_SIZE, WHITE, arm_visuals, head_box, palm_size, quad_side, static_bodies
 from body_schema.markers import aruco_dictionary, marker_corners
 from body_schema.robot import ArmModel, CameraIntrinsics, MarkerPlacement
 from body_schema.urdf import FixedLink, Visual, dh_chain_urdf
@@ -239,13 +239,14 @@ class SimWorld:
         self.set_joint_positions(np.clip(np.zeros(len(names)), self.robot.limits[:, 0], self.robot.limits[:, 1]))
 
     def _build_context(self, head_pose: ArrayLike | None) -> None:
-        """The description's static scenery (e.g. a torso) and, for eyes, a head behind them."""
-        c = self._client
+        """The description's obstacles and scenery (e.g. a torso, a table) and, for eyes, a head behind them."""
+        from .contacts import create_static_body
+
         # No floor: TinyRenderer's cost grows with covered pixels and a floor filling the view
         # halved the frame rate; the light background suits the markers anyway.
-        for box in self.robot.scenery:
-            vs = c.createVisualShape(p.GEOM_BOX, halfExtents=[s / 2 for s in box.size], rgbaColor=box.rgba)
-            c.createMultiBody(0, -1, vs, basePosition=box.xyz)
+        for body in static_bodies(self.robot):
+            if body.name != 'head':
+                create_static_body(self._client, body, visual=True, collision=False)
         self._head = None
         if self.robot.eyes is not None and 'left' in self.robot.eyes.links:
             self.set_head_pose(self.robot.eyes.head_pose if head_pose is None else head_pose)
@@ -272,15 +273,14 @@ class SimWorld:
         self.head_pose = np.array(head_pose, dtype=float)
         self._images.clear()
         c = self._client
-        left = self.robot.camera_pose('left', head_pose)
         # A 12 x 10 x 10 cm skull just behind the eyes (never in front: the cameras sit there).
-        centre = left @ np.array([0.034, 0.0, -0.065, 1.0])
-        quat = _quat_xyzw(left[:3, :3])
+        head = head_box(self.robot, head_pose)
+        centre, quat = head.pose[:3, 3], _quat_xyzw(head.pose[:3, :3])
         if self._head is None:
-            vs = c.createVisualShape(p.GEOM_BOX, halfExtents=[0.06, 0.05, 0.05], rgbaColor=WHITE)
-            self._head = c.createMultiBody(0, -1, vs, basePosition=centre[:3], baseOrientation=quat)
+            vs = c.createVisualShape(p.GEOM_BOX, halfExtents=[s / 2 for s in head.size], rgbaColor=WHITE)
+            self._head = c.createMultiBody(0, -1, vs, basePosition=centre, baseOrientation=quat)
         else:
-            c.resetBasePositionAndOrientation(self._head, centre[:3], quat)
+            c.resetBasePositionAndOrientation(self._head, centre, quat)
 
     # ----------------------------------------------------------------------------------------
     # State

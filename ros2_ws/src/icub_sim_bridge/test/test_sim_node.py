@@ -345,3 +345,34 @@ def test_a_random_start_is_drawn_in_the_box_per_robot_seed(ros) -> None:
                           make_sim(ros, image_rate=0.0).true_dh)
     given = np.radians([-50.0, 60.0, 70.0, 40.0, 10.0, -30.0, 0.0])
     np.testing.assert_allclose(start(perturb_seed=5, initial_positions_deg=list(np.degrees(given))), given)
+
+
+def test_contacts_with_the_table_are_reported_on_diagnostics_and_a_clear_motion_reports_none(ros) -> None:
+    """The UR5e drawn on its table: a motion that stays clear reports zero contacts (level OK) and
+    the least clearance; a command that drives the wrist into the table reports it (level ERROR,
+    the pair named), as a user watching /diagnostics would see it."""
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    from calibration_interfaces.outcome import CONTACT_DIAGNOSTIC, decode_contacts
+
+    ur = load_robot('ur5e')
+    make_sim(ros, robot='ur5e', image_rate=0.0, max_joint_speed_deg=180.0)
+    probe = Probe(ros)
+    reports = []
+    probe.node.create_subscription(
+        DiagnosticArray, '/diagnostics',
+        lambda m: reports.extend(s for s in m.status if s.name == CONTACT_DIAGNOSTIC), 100)
+    ros.spin_until(lambda: '/joint_states' in probe.last, 20.0, 'joint states')
+    up = np.radians([0.0, -100.0, 60.0, -180.0, -90.0, 0.0])
+    probe.command(ur.joint_names, [up])
+    ros.spin_until(lambda: np.allclose(probe.q(), up, atol=1e-6) and reports
+                   and decode_contacts({v.key: v.value for v in reports[-1].values}).checks > 5, 30.0, 'a clear move')
+    clear = decode_contacts({v.key: v.value for v in reports[-1].values})
+    assert clear.contacts == 0 and reports[-1].level == bytes([0]) and 0.05 < clear.min_clearance < 0.6
+    down = np.radians([0.0, -40.0, 130.0, -180.0, -90.0, 0.0])          # the wrist below the table top
+    probe.command(ur.joint_names, [down])
+    ros.spin_until(lambda: decode_contacts({v.key: v.value for v in reports[-1].values}).contacts > 0, 30.0,
+                   'a contact report')
+    hit = decode_contacts({v.key: v.value for v in reports[-1].values})
+    assert reports[-1].level == bytes([2]) and any('table' in pair for pair in hit.pairs)
+    assert hit.min_clearance < 0.0 and 'contact' in reports[-1].message

@@ -1,7 +1,7 @@
 """ROS 2 node: ArUco hand-pose detection with a pose-dependent noise model.
 
 A thin layer over :mod:`marker_detector.detection` (geometry), :mod:`marker_detector.stereo`
-(pairing the eyes) and :mod:`marker_detector.image_conversion` (what cv_bridge would do).
+(pairing the eyes) and :mod:`calibration_interfaces.image_conversion` (what cv_bridge would do).
 
 Subscribes
 ----------

@@ -16,8 +16,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from calibration_interfaces.image_conversion import ImageConversionError, image_to_gray
+
 from .detection import BadInput, FrameResult, HandPoseEstimator
-from .image_conversion import ImageConversionError, image_to_gray
 
 __all__ = ['DISTORTION_MODELS', 'CameraCalibration', 'calibration_from_info', 'judge_frame']
 
@@ -81,7 +82,7 @@ def judge_frame(estimator: HandPoseEstimator, image: Any, calibration: CameraCal
     Parameters
     ----------
     estimator : HandPoseEstimator
-    image : sensor_msgs/Image or any object with its fields (see :mod:`.image_conversion`)
+    image : sensor_msgs/Image or any object with its fields (see :mod:`calibration_interfaces.image_conversion`)
     calibration : CameraCalibration or BadInput
         The eye's latest camera_info: usable, or why it is not (a missing one included).
     root_T_cam : ndarray, shape (4, 4), or None

@@ -17,7 +17,7 @@ from calibration_interfaces.messages import matrix_to_pose_msg, pose_msg_to_matr
 from calibration_interfaces.node_util import qos_profile
 from calibration_interfaces.outcome import DETECTOR_DIAGNOSTIC, FrameReport, FrameStatus, decode_frame
 from marker_detector.detector_node import DetectorNode
-from marker_detector.image_conversion import array_to_image_fields
+from calibration_interfaces.image_conversion import array_to_image_fields
 from marker_detector.synthetic import look_at_pose, render_markers
 
 SENSOR_QOS = 5

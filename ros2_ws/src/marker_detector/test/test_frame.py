@@ -15,7 +15,7 @@ from body_schema.noise import PoseDependentNoise
 from calibration_interfaces.outcome import FrameStatus
 from marker_detector.detection import BadInput, HandPoseEstimator
 from marker_detector.frame import calibration_from_info, judge_frame
-from marker_detector.image_conversion import array_to_image_fields
+from calibration_interfaces.image_conversion import array_to_image_fields
 from marker_detector.synthetic import look_at_pose, render_markers
 
 

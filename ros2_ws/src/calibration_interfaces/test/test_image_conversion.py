@@ -7,7 +7,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from marker_detector.image_conversion import (ImageConversionError, array_to_image_fields,
+from calibration_interfaces.image_conversion import (ImageConversionError, array_to_image_fields,
                                               image_to_array, image_to_gray)
 
 

@@ -213,7 +213,7 @@ def test_bad_input_is_not_a_failed_detection(ros: Any, model, monkeypatch) -> No
     for i, kw in enumerate(good):
         assert send(10 + i, **kw).status is FrameStatus.NO_MARKER
     bad = [
-        (dict(rgb=zeros, encoding='rgba16'), 'image.encoding'),
+        (dict(rgb=zeros, encoding='32FC1'), 'image.encoding'),       # a depth image
         (dict(rgb=zeros, data=b'\x00' * 100), 'image.data'),        # truncated
         (dict(rgb=zeros, step=10), 'image.step'),
         (dict(rgb=None), 'image.encoding'),                          # empty message

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from calibration_interfaces.image_conversion import ImageConversionError, image_to_gray
+from calibration_interfaces.image_conversion import ImageConversionError, message_to_gray
 
 from .detection import BadInput, FrameResult, HandPoseEstimator
 
@@ -82,7 +82,8 @@ def judge_frame(estimator: HandPoseEstimator, image: Any, calibration: CameraCal
     Parameters
     ----------
     estimator : HandPoseEstimator
-    image : sensor_msgs/Image or any object with its fields (see :mod:`calibration_interfaces.image_conversion`)
+    image : sensor_msgs/Image or CompressedImage, or any object with their fields (see
+        :mod:`calibration_interfaces.image_conversion`)
     calibration : CameraCalibration or BadInput
         The eye's latest camera_info: usable, or why it is not (a missing one included).
     root_T_cam : ndarray, shape (4, 4), or None
@@ -98,7 +99,7 @@ def judge_frame(estimator: HandPoseEstimator, image: Any, calibration: CameraCal
     if isinstance(calibration, BadInput):
         return FrameResult(bad_input=calibration)
     try:
-        gray = image_to_gray(image)
+        gray = message_to_gray(image)
     except ImageConversionError as exc:
         return FrameResult(bad_input=BadInput(f'image.{exc.field}', str(exc)))
     if calibration.size is not None and calibration.size != (gray.shape[1], gray.shape[0]):

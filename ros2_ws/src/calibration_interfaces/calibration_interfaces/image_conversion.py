@@ -6,7 +6,10 @@ module covers the camera encodings of ``sensor_msgs/image_encodings.hpp`` that d
 * ``mono8``, ``mono16``;
 * ``rgb8``, ``bgr8``, ``rgba8``, ``bgra8`` and their 16-bit forms ``rgb16`` ... ``bgra16``;
 * the four Bayer mosaics ``bayer_rggb8``, ``bayer_bggr8``, ``bayer_gbrg8``, ``bayer_grbg8`` and
-  their 16-bit forms (demosaiced by OpenCV's bilinear ``cvtColor``, as cv_bridge does);
+  their 16-bit forms, demosaiced by OpenCV's ``cvtColor``: ``bilinear`` (the default, as
+  cv_bridge does), ``edge_aware`` or ``vng`` (variable number of gradients: fewer zipper
+  artefacts along edges, so marker corners closer to a colour camera's; slower, see
+  ``tools/encoding_bench.py``);
 * YUV 4:2:2 in both byte orders: ``uyvy`` (alias ``yuv422``, the older name) and ``yuyv``
   (alias ``yuv422_yuy2``).
 
@@ -45,7 +48,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ['ImageConversionError', 'Encoding', 'ENCODINGS', 'OUTPUT_ENCODINGS', 'COMPRESSED_FORMATS',
+__all__ = ['ImageConversionError', 'Encoding', 'ENCODINGS', 'OUTPUT_ENCODINGS', 'COMPRESSED_FORMATS', 'DEMOSAICING',
            'image_to_array', 'image_to_gray', 'convert_array', 'compressed_to_array', 'message_to_array', 'message_to_gray',
            'encode_rgb', 'array_to_image_fields', 'rgb_to_image_fields', 'compress', 'parse_compressed_format']
 
@@ -110,6 +113,8 @@ ENCODINGS: dict[str, Encoding] = _table()
 OUTPUT_ENCODINGS = ('mono8', 'rgb8', 'bgr8')
 #: Codecs of the compressed transport.
 COMPRESSED_FORMATS = ('jpeg', 'png')
+#: OpenCV's demosaicing algorithms for Bayer images (``bilinear``: cv_bridge's).
+DEMOSAICING = ('bilinear', 'edge_aware', 'vng')
 #: The 8-bit output of each kind that needs no colour conversion.
 _SAME = {'mono': 'mono8', 'rgb': 'rgb8', 'bgr': 'bgr8'}
 
@@ -175,7 +180,8 @@ def _as_bytes_view(data: Any) -> NDArray[np.uint8]:
 # Raw images
 
 
-def image_to_array(msg: Any, desired_encoding: str = 'passthrough') -> NDArray[np.uint8] | NDArray[np.uint16]:
+def image_to_array(msg: Any, desired_encoding: str = 'passthrough',
+                   demosaicing: str = 'bilinear') -> NDArray[np.uint8] | NDArray[np.uint16]:
     """Convert a ``sensor_msgs/Image`` to a numpy array.
 
     Parameters
@@ -185,6 +191,8 @@ def image_to_array(msg: Any, desired_encoding: str = 'passthrough') -> NDArray[n
     desired_encoding : {'passthrough', 'mono8', 'rgb8', 'bgr8'}
         Output encoding; ``passthrough`` keeps the message's layout (16-bit values in native
         byte order).
+    demosaicing : {'bilinear', 'edge_aware', 'vng'}
+        For Bayer encodings (:data:`DEMOSAICING`).
 
     Returns
     -------
@@ -225,7 +233,7 @@ def image_to_array(msg: Any, desired_encoding: str = 'passthrough') -> NDArray[n
     img = rows.reshape(height, width, enc.channels) if enc.channels > 1 else rows
     if desired_encoding == 'passthrough':
         return np.array(img, dtype=enc.dtype, order='C')
-    return convert_array(img, enc, desired_encoding)
+    return convert_array(img, enc, desired_encoding, demosaicing)
 
 
 def _cv2_codes() -> dict[tuple[str, str], int]:
@@ -249,13 +257,18 @@ def _cv2_codes() -> dict[tuple[str, str], int]:
     for ros, cv in (('rggb', 'BG'), ('bggr', 'RG'), ('gbrg', 'GR'), ('grbg', 'GB')):
         for out, suffix in (('mono8', 'GRAY'), ('rgb8', 'RGB'), ('bgr8', 'BGR')):
             codes[(f'bayer_{ros}', out)] = getattr(cv2, f'COLOR_Bayer{cv}2{suffix}')
+        # The other algorithms give colour only (grey: their RGB's luma).
+        for method, tail in (('edge_aware', '_EA'), ('vng', '_VNG')):
+            for out, suffix in (('rgb8', 'RGB'), ('bgr8', 'BGR')):
+                codes[(f'bayer_{ros}', out, method)] = getattr(cv2, f'COLOR_Bayer{cv}2{suffix}{tail}')
     return codes
 
 
-_CODES: dict[tuple[str, str], int] = {}
+_CODES: dict[tuple[str, ...], int] = {}
 
 
-def convert_array(img: NDArray[Any], encoding: Encoding | str, desired: str) -> NDArray[np.uint8]:
+def convert_array(img: NDArray[Any], encoding: Encoding | str, desired: str,
+                  demosaicing: str = 'bilinear') -> NDArray[np.uint8]:
     """An array laid out as ``encoding`` converted to ``desired`` (``mono8``, ``rgb8`` or ``bgr8``).
 
     Parameters
@@ -263,6 +276,8 @@ def convert_array(img: NDArray[Any], encoding: Encoding | str, desired: str) -> 
     img : ndarray, the encoding's layout (:attr:`Encoding.shape_text`), uint8 or uint16
     encoding : Encoding or str
     desired : {'mono8', 'rgb8', 'bgr8'}
+    demosaicing : {'bilinear', 'edge_aware', 'vng'}
+        For Bayer encodings.
 
     Returns
     -------
@@ -274,18 +289,24 @@ def convert_array(img: NDArray[Any], encoding: Encoding | str, desired: str) -> 
     _check_output(desired)
     if desired == 'passthrough':
         raise ImageConversionError('desired_encoding', 'convert_array needs an output encoding')
+    if demosaicing not in DEMOSAICING:
+        raise ImageConversionError('demosaicing', f'unsupported {demosaicing!r}; expected one of {list(DEMOSAICING)}')
     if enc.bits == 16:
         img = (img >> 8).astype(np.uint8)          # the high byte: v * 257 -> v exactly
     if _SAME.get(enc.kind) == desired:
         return np.array(img, dtype=np.uint8, order='C')
     if not _CODES:
         _CODES.update(_cv2_codes())
-    return cv2.cvtColor(np.ascontiguousarray(img), _CODES[(enc.kind, desired)])
+    img = np.ascontiguousarray(img)
+    if enc.kind.startswith('bayer_') and demosaicing != 'bilinear':
+        rgb = cv2.cvtColor(img, _CODES[(enc.kind, 'bgr8' if desired == 'bgr8' else 'rgb8', demosaicing)])
+        return cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY) if desired == 'mono8' else rgb
+    return cv2.cvtColor(img, _CODES[(enc.kind, desired)])
 
 
-def image_to_gray(msg: Any) -> NDArray[np.uint8]:
+def image_to_gray(msg: Any, demosaicing: str = 'bilinear') -> NDArray[np.uint8]:
     """The image as 8-bit grey levels, shape (H, W): what the marker detector needs."""
-    return image_to_array(msg, 'mono8')
+    return image_to_array(msg, 'mono8', demosaicing)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -433,7 +454,8 @@ def parse_compressed_format(fmt: str) -> tuple[str, str, str]:
     return enc, codec, order
 
 
-def compressed_to_array(msg: Any, desired_encoding: str = 'passthrough') -> NDArray[np.uint8] | NDArray[np.uint16]:
+def compressed_to_array(msg: Any, desired_encoding: str = 'passthrough',
+                        demosaicing: str = 'bilinear') -> NDArray[np.uint8] | NDArray[np.uint16]:
     """Decode a ``sensor_msgs/CompressedImage`` (JPEG or PNG) as image_transport's subscriber does.
 
     The payload is what the publisher compressed: a colour image converted to ``bgr8`` (or
@@ -446,6 +468,8 @@ def compressed_to_array(msg: Any, desired_encoding: str = 'passthrough') -> NDAr
         ``passthrough``: the decoded payload as it is (colour in the payload's channel order).
         ``mono8`` of a colour JPEG decodes straight to the JPEG's luma (OpenCV's
         ``IMREAD_GRAYSCALE``, which skips the chroma).
+    demosaicing : {'bilinear', 'edge_aware', 'vng'}
+        For a Bayer payload.
 
     Returns
     -------
@@ -491,7 +515,7 @@ def compressed_to_array(msg: Any, desired_encoding: str = 'passthrough') -> NDAr
         payload = ENCODINGS[f'{kind}{bits}']
     if desired_encoding == 'passthrough':
         return img
-    return convert_array(img, payload, desired_encoding)
+    return convert_array(img, payload, desired_encoding, demosaicing)
 
 
 def compress(array: NDArray[Any], encoding: str, fmt: str = 'jpeg', *, jpeg_quality: int = 95,
@@ -548,14 +572,14 @@ def _bgr16(a: NDArray[np.uint16], enc: Encoding) -> NDArray[np.uint16]:
 # Either transport
 
 
-def message_to_array(msg: Any, desired_encoding: str = 'passthrough') -> NDArray[Any]:
+def message_to_array(msg: Any, desired_encoding: str = 'passthrough', demosaicing: str = 'bilinear') -> NDArray[Any]:
     """:func:`compressed_to_array` for a message with ``format`` (a CompressedImage), else
     :func:`image_to_array`."""
     if hasattr(msg, 'format') and not hasattr(msg, 'encoding'):
-        return compressed_to_array(msg, desired_encoding)
-    return image_to_array(msg, desired_encoding)
+        return compressed_to_array(msg, desired_encoding, demosaicing)
+    return image_to_array(msg, desired_encoding, demosaicing)
 
 
-def message_to_gray(msg: Any) -> NDArray[np.uint8]:
+def message_to_gray(msg: Any, demosaicing: str = 'bilinear') -> NDArray[np.uint8]:
     """Either kind of image message as 8-bit grey levels, shape (H, W)."""
-    return message_to_array(msg, 'mono8')
+    return message_to_array(msg, 'mono8', demosaicing)

@@ -81,6 +81,22 @@ def test_conversion_matches_opencv_cvtcolor(name: str, k: int, desired: str) -> 
     np.testing.assert_array_equal(got, want)
 
 
+@pytest.mark.parametrize('name', ['bayer_rggb8', 'bayer_bggr16', 'bayer_gbrg8', 'bayer_grbg16'])
+@pytest.mark.parametrize('method, tail', [('edge_aware', '_EA'), ('vng', '_VNG')])
+def test_other_demosaicing_algorithms_match_opencv(name: str, method: str, tail: str) -> None:
+    arr = _random_layout(name, 10, 12)
+    eight = (arr >> 8).astype(np.uint8) if arr.dtype == np.uint16 else arr
+    tile = {'bayer_rggb': 'RGGB', 'bayer_bggr': 'BGGR', 'bayer_gbrg': 'GBRG', 'bayer_grbg': 'GRBG'}[ENCODINGS[name].kind]
+    msg = _msg(**array_to_image_fields(arr, name))
+    rgb = cv2.cvtColor(eight, getattr(cv2, f'COLOR_Bayer{tile}2RGB{tail}'))
+    np.testing.assert_array_equal(image_to_array(msg, 'rgb8', method), rgb)
+    np.testing.assert_array_equal(image_to_array(msg, 'bgr8', method),
+                                  cv2.cvtColor(eight, getattr(cv2, f'COLOR_Bayer{tile}2BGR{tail}')))
+    np.testing.assert_array_equal(image_to_gray(msg, method), cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY))
+    with pytest.raises(ImageConversionError, match='demosaicing'):
+        image_to_gray(msg, 'nearest')
+
+
 def _ros_mosaic(rgb: np.ndarray, pattern: str) -> np.ndarray:
     """Bayer mosaic as sensor_msgs defines it: ``pattern`` is the 2x2 tile read from the top left."""
     ch = {'r': 0, 'g': 1, 'b': 2}
@@ -101,8 +117,9 @@ def test_bayer_patterns_demosaic_to_the_colour_that_was_mosaicked(pattern: str, 
     np.testing.assert_array_equal(encode_rgb(flat, f'bayer_{pattern}{bits}'),
                                   mosaic.astype(np.uint16) * 257 if bits == 16 else mosaic)
     name = f'bayer_{pattern}{bits}'
-    out = image_to_array(_msg(**rgb_to_image_fields(flat, name)), 'rgb8')
-    np.testing.assert_array_equal(out[2:-2, 2:-2], flat[2:-2, 2:-2])     # borders: OpenCV's extrapolation
+    for method in ('bilinear', 'edge_aware', 'vng'):
+        out = image_to_array(_msg(**rgb_to_image_fields(flat, name)), 'rgb8', method)
+        np.testing.assert_array_equal(out[2:-2, 2:-2], flat[2:-2, 2:-2], err_msg=method)   # borders: extrapolated
     bgr = image_to_array(_msg(**rgb_to_image_fields(flat, name)), 'bgr8')
     np.testing.assert_array_equal(bgr[2:-2, 2:-2], flat[2:-2, 2:-2, ::-1])
 

@@ -36,7 +36,7 @@ call site, so a burst of one kind does not hide another.
 Parameters
 ----------
 Declared from :class:`marker_detector.detector_node.DetectorNodeSettings` (robot, stereo,
-transport, camera_info_url),
+transport, Bayer demosaicing, camera_info_url),
 :class:`calibration_interfaces.noise.NoiseSettings` and
 :class:`~calibration_interfaces.noise.PoseDependentSettings` (``noise_model``: ``pose_dependent``
 | ``constant``, and their coefficients: by default the robot description's fitted law) and
@@ -66,6 +66,7 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from body_schema import load_robot
 from calibration_interfaces.camera_info_file import CameraInfoFile, camera_info_differences, read_camera_info
 from calibration_interfaces.contract import IMAGE_TRANSPORTS, SENSOR, image_topic
+from calibration_interfaces.image_conversion import DEMOSAICING
 from calibration_interfaces.messages import matrix_to_pose_msg, pose_msg_to_matrix
 from calibration_interfaces.node_util import WarnOnce, WarnThrottled, declare_settings, qos_profile, spin_node
 from calibration_interfaces.noise import NoiseSettings, PoseDependentSettings
@@ -88,6 +89,9 @@ class DetectorNodeSettings:
     stereo_timeout: float = setting(0.5, 'Seconds one eye waits for the other eye of the same stamp', (0.0, 10.0))
     transport: str = setting('raw', 'Image transport: raw (camera/<eye>/image_raw, sensor_msgs/Image) or compressed '
                              '(camera/<eye>/image_raw/compressed, JPEG or PNG)', choices=IMAGE_TRANSPORTS)
+    demosaicing: str = setting('vng', 'Demosaicing of Bayer images: vng (corners closest to a colour camera\'s, '
+                               'tools/encoding_bench.py), edge_aware, or bilinear (cv_bridge\'s, the fastest)',
+                               choices=DEMOSAICING)
     camera_info_url: str = setting('', 'Left (or only) camera\'s intrinsics from a camera_info_manager YAML file '
                                    '(ost.yaml; file://, package:// or a path) instead of its camera_info topic; '
                                    'empty = the topic')
@@ -133,6 +137,7 @@ class DetectorNode(Node):
         self.estimator = HandPoseEstimator(self.model, self.noise.build(self.model, pdn), config)
         self.root_frame = self.model.root_frame
         self.stereo = s.use_right_eye
+        self.demosaicing = s.demosaicing
         self._warn_once = WarnOnce(self)
         self._warn = WarnThrottled(self)
         self.frames_processed = 0
@@ -217,7 +222,7 @@ class DetectorNode(Node):
             result = FrameResult(bad_input=BadInput('pose.missing', f'no camera pose for the {eye.name} eye yet'))
         else:
             try:
-                result = judge_frame(self.estimator, msg, eye.calibration, eye.root_T_cam)
+                result = judge_frame(self.estimator, msg, eye.calibration, eye.root_T_cam, self.demosaicing)
             except Exception as exc:  # noqa: BLE001 (OpenCV surprises must not kill the node)
                 # Not evidence about the hand either way: a frame nobody could judge.
                 result = FrameResult(bad_input=BadInput(f'internal.{type(exc).__name__}',

@@ -76,7 +76,7 @@ def calibration_from_info(k: Sequence[float], d: Sequence[float], width: int, he
 
 
 def judge_frame(estimator: HandPoseEstimator, image: Any, calibration: CameraCalibration | BadInput,
-                root_T_cam: NDArray[np.float64] | None) -> FrameResult:
+                root_T_cam: NDArray[np.float64] | None, demosaicing: str = 'bilinear') -> FrameResult:
     """Detect the hand in one image, or say why the image cannot be judged.
 
     Parameters
@@ -88,6 +88,8 @@ def judge_frame(estimator: HandPoseEstimator, image: Any, calibration: CameraCal
         The eye's latest camera_info: usable, or why it is not (a missing one included).
     root_T_cam : ndarray, shape (4, 4), or None
         Camera pose in the root frame; None gives the hand in the camera frame.
+    demosaicing : {'bilinear', 'edge_aware', 'vng'}
+        For a Bayer image (:data:`calibration_interfaces.image_conversion.DEMOSAICING`).
 
     Returns
     -------
@@ -99,7 +101,7 @@ def judge_frame(estimator: HandPoseEstimator, image: Any, calibration: CameraCal
     if isinstance(calibration, BadInput):
         return FrameResult(bad_input=calibration)
     try:
-        gray = message_to_gray(image)
+        gray = message_to_gray(image, demosaicing)
     except ImageConversionError as exc:
         return FrameResult(bad_input=BadInput(f'image.{exc.field}', str(exc)))
     if calibration.size is not None and calibration.size != (gray.shape[1], gray.shape[0]):

@@ -31,6 +31,12 @@ Runs one online calibration of a simulated arm (the iCub right arm by default) a
   --marker-error 'M DEG'  the same for the marker's offset on the flange (default: known)
   --rtf F           simulated seconds per wall second; 0 = as fast as possible (default: 1.0)
   --image-size WxH  camera resolution, intrinsics scale with it         (default: the description's camera)
+  --image-encoding E  what the simulated camera publishes: rgb8, bgr8, mono8, mono16, rgba8, bayer_rggb8,
+                    bayer_bggr16, yuv422, yuv422_yuy2, ... (any sensor_msgs camera encoding) (default: rgb8)
+  --transport T     raw | compressed: the detector reads image_raw (sensor_msgs/Image) or image_transport's
+                    image_raw/compressed (JPEG, quality 90); the bag records that stream  (default: raw)
+  --camera-info FILE  the detector's intrinsics from a camera_info_manager YAML (ost.yaml, as the ROS
+                    camera_calibration tool writes it) instead of the camera_info topic
   --no-images       do not record the camera images (smaller bag)
   --domain-id N     ROS_DOMAIN_ID 0-232; refused if another run holds it or a graph talks on it
                     (default: a free one in 100-199; discovery is localhost-only)
@@ -69,14 +75,14 @@ is_number() { [[ "$1" =~ ^[0-9]*\.?[0-9]+$ ]]; }
 
 robot=icub_right_arm; strategy=al; iterations=50; seed=1; output=results/run; noise=pose_dependent; rtf=1.0; estimator=map
 body_change=""; body_change_at=""; camera_error=""; marker_error=""; overwrite=0; resume=""
-image_size=""; record_images=1; domain_id=""; timeout=""; viz=0; viz_port=8080
+image_size=""; image_encoding=rgb8; transport=raw; camera_info=""; record_images=1; domain_id=""; timeout=""; viz=0; viz_port=8080
 max_timeouts=0.2; max_dh_difference=1e-4
 plan_only=0; poses=""; speed_scale=1.0; margin=""
 given=()   # run-defining options on the command line (a resumed run keeps its own)
 while [ $# -gt 0 ]; do
   case "$1" in
     --robot|--strategy|--iterations|--seed|--noise|--estimator|--body-change|--body-change-at|--image-size|\
-    --camera-error|--marker-error|--poses|--speed-scale|--margin)
+    --camera-error|--marker-error|--poses|--speed-scale|--margin|--image-encoding|--transport|--camera-info)
       need_value "$@"; given+=("$1") ;;&
     --output|--resume|--rtf|--domain-id|--timeout|--viz-port|--max-timeouts|--max-dh-difference)
       need_value "$@" ;;&
@@ -95,6 +101,9 @@ while [ $# -gt 0 ]; do
     --camera-error) camera_error=$2; shift 2 ;;
     --marker-error) marker_error=$2; shift 2 ;;
     --image-size) image_size=$2; shift 2 ;;
+    --image-encoding) image_encoding=$2; shift 2 ;;
+    --transport) transport=$2; shift 2 ;;
+    --camera-info) camera_info=$2; shift 2 ;;
     --no-images) record_images=0; given+=("$1"); shift ;;
     --domain-id) domain_id=$2; shift 2 ;;
     --timeout) timeout=$2; shift 2 ;;
@@ -123,6 +132,11 @@ fi
 case "$strategy" in random|al|ucsal|ccsal) ;; *) die "--strategy must be random, al, ucsal or ccsal, got '$strategy'" ;; esac
 case "$noise" in pose_dependent|constant) ;; *) die "--noise must be pose_dependent or constant, got '$noise'" ;; esac
 case "$estimator" in map|ekf) ;; *) die "--estimator must be map or ekf, got '$estimator'" ;; esac
+case "$transport" in raw|compressed) ;; *) die "--transport must be raw or compressed, got '$transport'" ;; esac
+if [ -n "$camera_info" ]; then
+  [ -f "$camera_info" ] || die "--camera-info: no file '$camera_info'"
+  camera_info=$(cd "$(dirname "$camera_info")" && pwd)/$(basename "$camera_info")   # the nodes run elsewhere
+fi
 [[ "$iterations" =~ ^[1-9][0-9]*$ ]] || die "--iterations must be a positive integer, got '$iterations'"
 [[ "$seed" =~ ^[0-9]+$ ]] || die "--seed must be a non-negative integer, got '$seed'"
 [[ -n "$robot" ]] || die "--robot must name a robot description"
@@ -206,6 +220,17 @@ command_of() {  # the command line that runs <pkg> <exe>
 }
 config=$(share_dir calibration_bringup)/config || \
   die "calibration_bringup is not installed (run 'make setup', or source your colcon workspace)"
+# The encoding and the calibration file are checked by the code that will read them, before anything starts.
+python3 -c 'import sys; from calibration_interfaces.image_conversion import ENCODINGS as E
+sys.exit(0 if sys.argv[1] in E else f"run_calibration: --image-encoding must be one of {sorted(E)}, got {sys.argv[1]!r}")' \
+  "$image_encoding" || exit 2
+if [ -n "$camera_info" ]; then
+  python3 -c 'import sys; from calibration_interfaces.camera_info_file import CameraInfoFileError, read_camera_info
+try:
+    read_camera_info(sys.argv[1])
+except CameraInfoFileError as exc:
+    sys.exit(f"run_calibration: --camera-info: {exc}")' "$camera_info" || exit 2
+fi
 for pair in icub_sim_bridge:sim_node marker_detector:detector_node dh_estimator:estimator_node \
             active_selector:selector_node calibration_bringup:recorder_node calibration_bringup:calibration_report; do
   command_of "${pair%%:*}" "${pair##*:}" >/dev/null || die "executable ${pair##*:} of ${pair%%:*} not found"
@@ -305,7 +330,7 @@ else
   bag="$output/calibration.mcap"
   {
     for var in robot strategy iterations seed noise estimator body_change body_change_at camera_error marker_error \
-               image_size record_images rtf poses speed_scale margin; do
+               image_size image_encoding transport camera_info record_images rtf poses speed_scale margin; do
       printf '%s=%q\n' "$var" "${!var}"
     done
   } >"$output/run.env"
@@ -338,6 +363,14 @@ recorder_args=(-p "output:=$bag" -p "robot:=$robot")
 sim_args=()       # rcl refuses an empty value (-p body_change:=), so the change is passed only when asked for
 [ -z "$body_change" ] || sim_args=(-p "body_change:=$body_change" -p "body_change_at_command:=$body_change_at")
 [ "$record_images" = 1 ] || recorder_args+=(-p "exclude_images:=true")
+# The bag records the image stream the detector reads (the other transport is not published, or not wanted).
+other_images=$(python3 -c 'import sys; from calibration_interfaces.contract import IMAGE_TOPICS as I, COMPRESSED_IMAGE_TOPICS as C
+print("[" + ",".join(t for t in I if (t in C) == (sys.argv[1] == "raw")) + "]")' "$transport")
+recorder_args+=(-p "exclude:=$other_images")
+sim_args+=(-p "image_encoding:=$image_encoding")
+detector_args=(-p "transport:=$transport")
+if [ "$transport" = compressed ]; then sim_args+=(-p "compressed_format:=jpeg"); fi
+[ -z "$camera_info" ] || detector_args+=(-p "camera_info_url:=file://$camera_info")
 extrinsics_args=()   # the real camera / marker off the description's, estimated with the arm
 [ -z "$camera_error" ] || { sim_args+=(-p "camera_perturbation:=$camera_error"); extrinsics_args+=(-p "camera_prior:=$camera_error"); }
 [ -z "$marker_error" ] || { sim_args+=(-p "marker_perturbation:=$marker_error"); extrinsics_args+=(-p "marker_prior:=$marker_error"); }
@@ -346,9 +379,10 @@ report_args=()       # the report's re-run estimates them too
 [ -z "$marker_error" ] || report_args+=(--marker-prior "$marker_error")
 
 echo "run_calibration: $robot, $strategy, $iterations iterations, seed $seed, noise $noise, estimator $estimator," \
-     "$size_text, rtf $rtf, ROS_DOMAIN_ID $ROS_DOMAIN_ID, run $run_id -> $output"
+     "$size_text, $image_encoding over $transport, rtf $rtf, ROS_DOMAIN_ID $ROS_DOMAIN_ID, run $run_id -> $output"
 [ -z "$resume" ] || echo "run_calibration: resuming the run in $output; this part is recorded to $bag"
 [ -z "$body_change" ] || echo "run_calibration: the real robot changes by '$body_change' at iteration $body_change_at"
+[ -z "$camera_info" ] || echo "run_calibration: the detector's intrinsics come from $camera_info"
 wall0=$SECONDS
 # The recorder first, so every latched fact (true table, initial estimate, camera poses) is in the bag.
 start recorder calibration_bringup recorder_node --ros-args --params-file "$config/recorder.yaml" \
@@ -360,10 +394,11 @@ start sim icub_sim_bridge sim_node --ros-args --params-file "$config/sim.yaml" \
   "${sim_args[@]}"
 if [ "$viz" = 1 ]; then   # latched facts (true table, camera poses, estimate) reach it whenever it starts
   start viz calibration_viz viz_node --ros-args --params-file "$viz_config/viz.yaml" -p "port:=$viz_port" \
-    -p "robot:=$robot"
+    -p "robot:=$robot" -p "transport:=$transport"
   echo "run_calibration: live 3D view at http://127.0.0.1:$viz_port (open it in a browser)"
 fi
-start detector marker_detector detector_node --ros-args --params-file "$config/detector.yaml" -p "robot:=$robot"
+start detector marker_detector detector_node --ros-args --params-file "$config/detector.yaml" -p "robot:=$robot" \
+  "${detector_args[@]}"
 start estimator dh_estimator estimator_node --ros-args --params-file "$config/estimator.yaml" \
   -p "robot:=$robot" -p "initial_seed:=$seed" -p "noise_model:=$noise" -p "estimator:=$estimator" \
   -p "export_dir:=$output/model" -p "checkpoint_path:=$output/checkpoint.npz" "${extrinsics_args[@]}"
@@ -420,7 +455,7 @@ echo "run_calibration: finished in ${wall} s; writing the report"
 calibration_cmd=$(command_of calibration_bringup calibration_report)
 # shellcheck disable=SC2086  # the command line is words on purpose (ros2 run pkg exe)
 $calibration_cmd --bag "$bag" --output "$output" --wall-seconds "$wall" \
-  --title "$robot, $strategy, $iterations iterations, seed $seed, noise $noise, estimator $estimator, $size_text" \
+  --title "$robot, $strategy, $iterations iterations, seed $seed, noise $noise, estimator $estimator, $size_text, $image_encoding over $transport" \
   --params-file "$config/estimator.yaml" --noise-model "$noise" --estimator "$estimator" --robot "$robot" "${report_args[@]}"
 # The run's health: a run with many timeouts (a stalled estimator) or whose offline re-run
 # disagrees with the online estimate is not a result to trust, even if it finished.

@@ -76,6 +76,9 @@ def _start(out: Path, *args: str) -> subprocess.Popen:
     (['--max-timeouts', '1.5'], '--max-timeouts'),
     (['--max-dh-difference', 'small'], '--max-dh-difference'),
     (['--resume', '/nonexistent-run-dir'], '--resume'),
+    (['--transport', 'theora'], '--transport'),
+    (['--image-encoding', 'nv24'], '--image-encoding'),
+    (['--camera-info', '/nonexistent/ost.yaml'], '--camera-info'),
 ])
 def test_a_bad_option_exits_2_with_one_line_naming_it_and_starts_nothing(tmp_path: Path, args, named) -> None:
     out = tmp_path / 'run'
@@ -86,6 +89,16 @@ def test_a_bad_option_exits_2_with_one_line_naming_it_and_starts_nothing(tmp_pat
     assert 'Traceback' not in proc.stderr and 'unbound' not in proc.stderr
     assert not out.exists()                                          # nothing started, nothing written
     assert not _processes_with(str(out))
+
+
+def test_a_malformed_camera_info_file_is_refused_naming_the_field(tmp_path: Path) -> None:
+    bad = tmp_path / 'ost.yaml'
+    bad.write_text('image_height: 240\ncamera_matrix: {rows: 3, cols: 3, data: [1, 0, 0, 0, 1, 0, 0, 0, 1]}\n')
+    proc = subprocess.run([str(SCRIPT), '--output', str(tmp_path / 'run'), '--camera-info', str(bad)], env=_env(),
+                          capture_output=True, text=True, timeout=30)
+    assert proc.returncode == 2 and proc.stderr.count('\n') == 1, proc.stderr
+    assert '--camera-info' in proc.stderr and 'image_width' in proc.stderr and str(bad) in proc.stderr
+    assert not (tmp_path / 'run').exists()
 
 
 def test_a_non_empty_output_is_refused_and_overwrite_clears_the_previous_run(tmp_path: Path) -> None:

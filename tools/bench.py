@@ -17,6 +17,8 @@ BENCHMARKS: dict[str, tuple[str, list[str]]] = {
     'body_schema': ('tools.kinematics_bench', []),
     'icub_sim_bridge': ('tools.sim_bench', []),
     'marker_detector': ('tools.detector_bench', []),
+    # Every camera encoding and the compressed transport against rgb8; detector time at 1280x1024.
+    'camera_encodings': ('tools.encoding_bench', []),
     'dh_estimator': ('tools.map_bench', []),
     'active_selector': ('tools.loop_bench', []),
     # Batched candidates + local refinement vs DIRECT-L 1000 on recorded selection states (~5 min).

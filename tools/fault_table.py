@@ -268,7 +268,7 @@ def _bad_messages() -> dict[str, tuple[type, Callable[[int], Any]]]:
                                points=[JointTrajectoryPoint(positions=[nan] * 7)])
 
     def image(i: int) -> Image:
-        return Image(height=240, width=320, encoding='rgba16' if i % 2 else 'rgb8', step=960, data=bytes(i % 97))
+        return Image(height=240, width=320, encoding='32FC1' if i % 2 else 'rgb8', step=960, data=bytes(i % 97))
 
     def info(i: int) -> CameraInfo:
         return CameraInfo(width=320, height=240, d=[nan] * 5, k=[0.0] * 9 if i % 2 else [nan] * 9)

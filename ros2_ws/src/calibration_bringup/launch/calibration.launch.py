@@ -21,6 +21,8 @@ import os
 from typing import Any
 
 from body_schema.noise import NOISE_MODELS
+from calibration_interfaces.contract import COMPRESSED_IMAGE_TOPICS, IMAGE_TOPICS, IMAGE_TRANSPORTS
+from calibration_interfaces.image_conversion import ENCODINGS
 
 #: Launch arguments: name -> (default, description).
 ARGUMENTS: dict[str, tuple[str, str]] = {
@@ -34,6 +36,11 @@ ARGUMENTS: dict[str, tuple[str, str]] = {
     'body_change_at': ('0', 'the selector iteration at whose command the body changes (0: never)'),
     'rtf': ('1.0', 'simulated seconds per wall second; 0 = as fast as possible'),
     'record_images': ('true', 'record the camera images (false: smaller bag)'),
+    'transport': ('raw', 'raw | compressed: the detector reads image_raw/compressed (JPEG) and the bag records it'),
+    'image_encoding': ('rgb8', 'encoding of the simulated camera, e.g. bayer_rggb8, yuv422 (calibration_interfaces.'
+                               'image_conversion.ENCODINGS)'),
+    'camera_info_url': ('', "the detector's intrinsics from a camera_info_manager file (file:///.../ost.yaml) "
+                            'instead of camera_info'),
     'output': ('results/run', 'directory of the bag, the model export and progress.jsonl'),
     'viz': ('false', 'true: also serve the live 3D view (calibration_viz) at http://127.0.0.1:8080'),
 }
@@ -58,20 +65,33 @@ def node_specs(args: dict[str, str]) -> list[dict[str, Any]]:
         raise ValueError(f"estimator must be 'map' or 'ekf', got {args['estimator']!r}")
     if args['viz'].lower() not in ('true', 'false'):
         raise ValueError(f"viz must be 'true' or 'false', got {args['viz']!r}")
+    transport = args['transport']
+    if transport not in IMAGE_TRANSPORTS:
+        raise ValueError(f'transport must be one of {list(IMAGE_TRANSPORTS)}, got {transport!r}')
+    if args['image_encoding'] not in ENCODINGS:
+        raise ValueError(f"image_encoding must be one of {sorted(ENCODINGS)}, got {args['image_encoding']!r}")
+    # The bag records the images of the transport the detector reads.
+    other = [t for t in IMAGE_TOPICS if (t in COMPRESSED_IMAGE_TOPICS) == (transport == 'raw')]
+    detector = {'transport': transport}
+    if args['camera_info_url']:
+        detector['camera_info_url'] = args['camera_info_url']
     # The view's parameter file is its own package's (as run_calibration.sh --viz uses it).
     viz = [{'name': 'viz', 'package': 'calibration_viz', 'executable': 'viz_node', 'params_file': 'viz.yaml',
-            'config_package': 'calibration_viz', 'parameters': {}}] if args['viz'].lower() == 'true' else []
+            'config_package': 'calibration_viz', 'parameters': {'transport': transport}}] \
+        if args['viz'].lower() == 'true' else []
     specs = [
         # The recorder first, so every latched fact (true table, initial estimate, camera poses) is in the bag.
         {'name': 'recorder', 'package': 'calibration_bringup', 'executable': 'recorder_node',
          'params_file': 'recorder.yaml',
          'parameters': {'output': os.path.join(out, 'calibration.mcap'),
-                        'exclude_images': args['record_images'].lower() != 'true'}},
+                        'exclude_images': args['record_images'].lower() != 'true', 'exclude': other}},
         {'name': 'sim', 'package': 'icub_sim_bridge', 'executable': 'sim_node', 'params_file': 'sim.yaml',
          'parameters': {'perturb_seed': seed, 'real_time_factor': float(args['rtf']),
-                        'body_change': args['body_change'], 'body_change_at_command': int(args['body_change_at'])}},
+                        'body_change': args['body_change'], 'body_change_at_command': int(args['body_change_at']),
+                        'image_encoding': args['image_encoding'],
+                        'compressed_format': 'jpeg' if transport == 'compressed' else 'none'}},
         {'name': 'detector', 'package': 'marker_detector', 'executable': 'detector_node',
-         'params_file': 'detector.yaml', 'parameters': {}},
+         'params_file': 'detector.yaml', 'parameters': detector},
         {'name': 'estimator', 'package': 'dh_estimator', 'executable': 'estimator_node',
          'params_file': 'estimator.yaml',
          'parameters': {'initial_seed': seed, 'noise_model': noise, 'estimator': args['estimator'],

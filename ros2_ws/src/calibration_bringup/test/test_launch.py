@@ -86,3 +86,23 @@ def test_every_override_is_declared_by_its_node(ros, tmp_path: Path) -> None:
 def test_bad_noise_model_is_named(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match='pdn'):
         _specs(tmp_path, noise='pdn')
+
+
+def test_transport_encoding_and_calibration_file_reach_their_nodes(tmp_path: Path) -> None:
+    def by_name(**args: str) -> dict[str, dict]:
+        return {s['name']: s['parameters'] for s in _specs(tmp_path, **args)}
+
+    raw = by_name()
+    assert raw['sim']['compressed_format'] == 'none' and raw['sim']['image_encoding'] == 'rgb8'
+    assert raw['detector'] == {'robot': 'icub_right_arm', 'transport': 'raw'}
+    assert raw['recorder']['exclude'] == ['/camera/left/image_raw/compressed', '/camera/right/image_raw/compressed']
+    url = f'file://{tmp_path}/ost.yaml'
+    packed = by_name(transport='compressed', image_encoding='bayer_rggb8', camera_info_url=url, viz='true')
+    assert packed['sim']['compressed_format'] == 'jpeg' and packed['sim']['image_encoding'] == 'bayer_rggb8'
+    assert packed['detector'] == {'robot': 'icub_right_arm', 'transport': 'compressed', 'camera_info_url': url}
+    assert packed['recorder']['exclude'] == ['/camera/left/image_raw', '/camera/right/image_raw']
+    assert packed['viz']['transport'] == 'compressed'
+    with pytest.raises(ValueError, match='theora'):
+        _specs(tmp_path, transport='theora')
+    with pytest.raises(ValueError, match='nv24'):
+        _specs(tmp_path, image_encoding='nv24')

@@ -12,7 +12,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rclpy.serialization import serialize_message
 from rosgraph_msgs.msg import Clock
-from sensor_msgs.msg import Image, JointState
+from sensor_msgs.msg import CompressedImage, Image, JointState
 from std_msgs.msg import Float64MultiArray, String
 
 from calibration_bringup.mcap_writer import McapBagWriter
@@ -37,19 +37,23 @@ def _record(ros: Any, path: Path) -> None:
     truth.publish(Float64MultiArray(data=[4.0, 5.0]))
     js = probe.create_publisher(JointState, '/joint_states', 10)
     img = probe.create_publisher(Image, '/camera/left/image_raw', qos_profile_sensor_data)
+    # image_transport's compressed topic is recorded and played like the raw one.
+    jpeg = probe.create_publisher(CompressedImage, '/camera/left/image_raw/compressed', qos_profile_sensor_data)
     rec = ros.add(RecorderNode(context=ros.context, parameter_overrides=[
         Parameter('output', value=str(path)), Parameter('discovery_period', value=0.1),
         Parameter('record_tf', value=False)]))   # this test's joint states are not the iCub's
-    ros.spin_until(lambda: all(p.get_subscription_count() for p in (truth, js, img)), 15.0, 'recorder')
+    ros.spin_until(lambda: all(p.get_subscription_count() for p in (truth, js, img, jpeg)), 15.0, 'recorder')
     ros.spin_until(lambda: rec.counts.get('/body_schema/true') == 1, 10.0, 'the latched fact')
     for i in range(N):
         js.publish(JointState(name=['a'], position=[float(i)]))
         img.publish(Image(height=1, width=i + 1, encoding='mono8', step=i + 1, data=bytes(i + 1)))
+        jpeg.publish(CompressedImage(format='rgb8; jpeg compressed bgr8', data=bytes([i]) * (i + 3)))
         ros.spin_for(0.01)   # spread the log times a little: the player reproduces the spacing
-    want = {'/body_schema/true': 1, '/joint_states': N, '/camera/left/image_raw': N}
+    want = {'/body_schema/true': 1, '/joint_states': N, '/camera/left/image_raw': N,
+            '/camera/left/image_raw/compressed': N}
     ros.spin_until(lambda: rec.counts == want, 10.0, f'{want} recorded')
     rec.close()
-    for p in (truth, js, img):   # the player must be the only source from here on
+    for p in (truth, js, img, jpeg):   # the player must be the only source from here on
         probe.destroy_publisher(p)
 
 
@@ -59,19 +63,22 @@ def test_record_then_play_gives_the_recorded_bytes_and_clock(ros: Any, tmp_path:
     recorded = {t: [m.data for m in bag.read_raw(path, [t])] for t in bag.summary(path).topics}
     s = bag.summary(path)
 
-    got: dict[str, list[bytes]] = {'/joint_states': [], '/camera/left/image_raw': [], '/clock': []}
+    jpeg = '/camera/left/image_raw/compressed'
+    got: dict[str, list[bytes]] = {'/joint_states': [], '/camera/left/image_raw': [], jpeg: [], '/clock': []}
     sink = ros.node('sink')
     sink.create_subscription(JointState, '/joint_states', got['/joint_states'].append, 100, raw=True)
     sink.create_subscription(Image, '/camera/left/image_raw', got['/camera/left/image_raw'].append,
                              qos_profile_sensor_data, raw=True)
+    sink.create_subscription(CompressedImage, jpeg, got[jpeg].append, qos_profile_sensor_data, raw=True)
     sink.create_subscription(Clock, '/clock', got['/clock'].append, CLOCK_QOS)
 
     player = _player(ros, path, start_paused=True)
     pubs = player.publishers_by_topic
     assert pubs['/camera/left/image_raw'].qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
+    assert pubs[jpeg].qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
     assert pubs['/body_schema/true'].qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
     assert pubs['/joint_states'].qos_profile.reliability == ReliabilityPolicy.RELIABLE
-    ros.spin_until(lambda: pubs['/joint_states'].get_subscription_count()
+    ros.spin_until(lambda: pubs['/joint_states'].get_subscription_count() and pubs[jpeg].get_subscription_count()
                    and pubs['/camera/left/image_raw'].get_subscription_count(), 15.0, 'player <-> sink')
     ros.spin_for(0.2)
     assert got['/joint_states'] == [] and not player.done   # paused until resumed
@@ -79,11 +86,12 @@ def test_record_then_play_gives_the_recorded_bytes_and_clock(ros: Any, tmp_path:
     assert player.resume() and not player.resume()
     ros.spin_until(lambda: player.done, 15.0, 'the end of the bag')
     assert time.monotonic() - t0 >= 0.9 * s.duration_s   # rate 1 keeps the recorded spacing
-    ros.spin_until(lambda: len(got['/joint_states']) == N and len(got['/camera/left/image_raw']) == N,
-                   10.0, 'every played message')
+    ros.spin_until(lambda: len(got['/joint_states']) == N and len(got['/camera/left/image_raw']) == N
+                   and len(got[jpeg]) == N, 10.0, 'every played message')
 
     assert got['/joint_states'] == recorded['/joint_states']   # byte for byte
     assert got['/camera/left/image_raw'] == recorded['/camera/left/image_raw']
+    assert got[jpeg] == recorded[jpeg]
     assert player.published == {t: len(v) for t, v in recorded.items()}
     def stamps() -> list[int]:
         return [c.clock.sec * 10**9 + c.clock.nanosec for c in got['/clock']]

@@ -13,8 +13,8 @@ from dataclasses import dataclass
 from .parameters import setting
 
 __all__ = ['Reliability', 'Durability', 'QosSpec', 'SENSOR', 'RELIABLE', 'LATCHED', 'HISTORY', 'ContractTopic',
-           'CONTRACT', 'BY_NAME', 'IMAGE_TOPICS', 'topic', 'ESTIMATE_FRAME_PREFIX', 'optical_frame', 'RUN_ID_TOPIC',
-           'RunSettings']
+           'CONTRACT', 'BY_NAME', 'IMAGE_TOPICS', 'COMPRESSED_IMAGE_TOPICS', 'IMAGE_TRANSPORTS', 'image_topic', 'topic',
+           'ESTIMATE_FRAME_PREFIX', 'optical_frame', 'RUN_ID_TOPIC', 'RunSettings']
 
 
 class Reliability(enum.StrEnum):
@@ -95,8 +95,29 @@ class ContractTopic:
         return self.qos.reliability is Reliability.BEST_EFFORT
 
 
+#: How images travel (image_transport's names): ``raw`` sensor_msgs/Image on ``.../image_raw``,
+#: ``compressed`` sensor_msgs/CompressedImage (JPEG or PNG) on ``.../image_raw/compressed``.
+IMAGE_TRANSPORTS: tuple[str, ...] = ('raw', 'compressed')
+
+
+def image_topic(camera: str, transport: str = 'raw') -> str:
+    """The image topic of ``camera`` for ``transport`` (image_transport's naming).
+
+    Raises
+    ------
+    ValueError
+        If ``transport`` is not one of :data:`IMAGE_TRANSPORTS`.
+    """
+    if transport not in IMAGE_TRANSPORTS:
+        raise ValueError(f'transport must be one of {list(IMAGE_TRANSPORTS)}, got {transport!r}')
+    return f'/camera/{camera}/image_raw' + ('' if transport == 'raw' else f'/{transport}')
+
+
 def _eye(eye: str) -> tuple[ContractTopic, ...]:
-    return (ContractTopic(f'/camera/{eye}/image_raw', 'sensor_msgs/msg/Image', SENSOR),
+    return (ContractTopic(image_topic(eye), 'sensor_msgs/msg/Image', SENSOR),
+            # Published by the simulator only when asked for (compressed_format); a real camera's
+            # image_transport publishes it whenever someone subscribes.
+            ContractTopic(image_topic(eye, 'compressed'), 'sensor_msgs/msg/CompressedImage', SENSOR),
             ContractTopic(f'/camera/{eye}/camera_info', 'sensor_msgs/msg/CameraInfo', LATCHED),
             ContractTopic(f'/camera/{eye}/pose', 'geometry_msgs/msg/PoseStamped', LATCHED))
 
@@ -159,8 +180,11 @@ def optical_frame(eye: str) -> str:
     """The optical frame of camera ``eye`` (z forward, x right, y down): images' ``frame_id``."""
     return f'{eye}_camera_optical_frame'
 
-#: Topics whose bandwidth dominates a bag; experiments leave them out.
-IMAGE_TOPICS: tuple[str, ...] = tuple(t.name for t in CONTRACT if t.name.endswith('/image_raw'))
+#: Topics whose bandwidth dominates a bag (either transport); experiments leave them out.
+IMAGE_TOPICS: tuple[str, ...] = tuple(t.name for t in CONTRACT if t.type in ('sensor_msgs/msg/Image',
+                                                                              'sensor_msgs/msg/CompressedImage'))
+#: The compressed transport's image topics (a run on the raw transport has none).
+COMPRESSED_IMAGE_TOPICS: tuple[str, ...] = tuple(t.name for t in CONTRACT if t.type == 'sensor_msgs/msg/CompressedImage')
 
 
 def topic(name: str) -> ContractTopic:

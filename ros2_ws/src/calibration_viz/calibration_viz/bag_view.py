@@ -112,7 +112,8 @@ def blueprint() -> 'rrb.Blueprint':  # noqa: F821 (rerun is imported lazily)
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Spatial3DView(name='arm, estimate and observations', origin='/',
-                              contents=['/**', '- /camera/**/image_raw', f'- /{ERROR_ENTITY}/**']),
+                              contents=['/**', '- /camera/**/image_raw', '- /camera/**/image_raw/compressed',
+                                        f'- /{ERROR_ENTITY}/**']),
             rrb.Vertical(
                 rrb.Horizontal(rrb.Spatial2DView(name='left eye', origin='/camera/left/image_raw'),
                                rrb.Spatial2DView(name='right eye', origin='/camera/right/image_raw')),

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from calibration_interfaces.contract import IMAGE_TRANSPORTS
 from calibration_interfaces.parameters import setting
 
 __all__ = ['VizSettings']
@@ -23,3 +24,5 @@ class VizSettings:
     error_configs: int = setting(200, 'Configurations of the error curve (the offline evaluation: 1000)',
                                  (10, 5000))
     cameras: tuple[str, ...] = setting(('left', 'right'), 'Eyes whose camera is drawn')
+    transport: str = setting('raw', 'Image transport: raw (image_raw) or compressed (image_raw/compressed)',
+                             choices=IMAGE_TRANSPORTS)

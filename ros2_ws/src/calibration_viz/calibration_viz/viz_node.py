@@ -18,12 +18,14 @@ Topics subscribed
 /camera/<eye>/pose, /camera/<eye>/camera_info : geometry_msgs/PoseStamped, sensor_msgs/CameraInfo
     Latched; the frustums.
 /camera/<eye>/image_raw : sensor_msgs/Image
-    Sensor data QoS; rgb8, shown in the frustum at most ``image_rate`` times a second.
+    Sensor data QoS; any camera encoding (:mod:`calibration_interfaces.image_conversion`), shown
+    in the frustum at most ``image_rate`` times a second. With ``transport: compressed``
+    ``/camera/<eye>/image_raw/compressed`` (sensor_msgs/CompressedImage) instead.
 
 Parameters
 ----------
 Declared (read-only) from :class:`calibration_viz.settings.VizSettings`: robot, host, port,
-redraw_rate, image_rate, history, error_configs, cameras.
+redraw_rate, image_rate, history, error_configs, cameras, transport.
 """
 from __future__ import annotations
 
@@ -37,11 +39,12 @@ import numpy as np
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
-from sensor_msgs.msg import CameraInfo, Image, JointState
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, JointState
 from std_msgs.msg import Float64MultiArray
 
 from body_schema.robot import CameraIntrinsics, load_robot
-from calibration_interfaces.contract import SENSOR
+from calibration_interfaces.contract import SENSOR, image_topic
+from calibration_interfaces.image_conversion import ImageConversionError, message_to_array
 from calibration_interfaces.messages import (MessageFormatError, joints_in_order, msg_to_table,
                                              pose_msg_to_matrix)
 from calibration_interfaces.node_util import WarnOnce, declare_settings, qos_profile, spin_node
@@ -79,8 +82,9 @@ class VizNode(Node):
             self.create_subscription(CameraInfo, f'/camera/{eye}/camera_info',
                                      lambda m, e=eye: self._on_camera_info(e, m),
                                      qos_profile(f'/camera/{eye}/camera_info'))
-            self.create_subscription(Image, f'/camera/{eye}/image_raw', lambda m, e=eye: self._on_image(e, m),
-                                     qos_profile(f'/camera/{eye}/image_raw'))
+            topic = image_topic(eye, s.transport)
+            self.create_subscription(Image if s.transport == 'raw' else CompressedImage, topic,
+                                     lambda m, e=eye: self._on_image(e, m), qos_profile(topic))
         # Wall clock: the view keeps redrawing even when sim time stands still.
         self.create_timer(1.0 / s.redraw_rate, self._redraw, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.get_logger().info(f'live view of {self.model.name} at {self.view.url}')
@@ -121,17 +125,17 @@ class VizNode(Node):
         self.state.set_camera_intrinsics(eye, CameraIntrinsics(int(msg.width), int(msg.height), float(k[0]),
                                                                float(k[4]), float(k[2]), float(k[5])))
 
-    def _on_image(self, eye: str, msg: Image) -> None:
+    def _on_image(self, eye: str, msg: Image | CompressedImage) -> None:
         now = time.monotonic()
         if now - self._last_image.get(eye, -np.inf) < self._image_period:
             return
-        if msg.encoding != 'rgb8' or msg.step < 3 * msg.width:
-            self._warn(f'encoding {eye}', f'/camera/{eye}/image_raw: {msg.encoding!r} (step {msg.step}) '
-                                          f'not shown; the view takes rgb8')
+        try:
+            rgb = message_to_array(msg, 'rgb8')
+        except ImageConversionError as exc:
+            self._warn(f'image {eye} {exc.field}', f'{image_topic(eye, self.settings.transport)}: not shown ({exc})')
             return
         self._last_image[eye] = now
-        rows = np.frombuffer(bytes(msg.data), np.uint8).reshape(msg.height, msg.step)
-        self.state.set_image(eye, rows[:, :3 * msg.width].reshape(msg.height, msg.width, 3))
+        self.state.set_image(eye, rgb)
 
     def _redraw(self) -> None:
         self.view.draw(self.state)

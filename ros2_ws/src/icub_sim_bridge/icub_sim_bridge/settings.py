@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from calibration_interfaces.image_conversion import COMPRESSED_FORMATS, ENCODINGS
 from calibration_interfaces.parameters import setting
 
 __all__ = ['SimSettings']
@@ -60,6 +61,14 @@ class SimSettings:
     pixel_noise_std: float = setting(0.0, 'Additive Gaussian pixel noise [grey levels]', (0.0, 100.0))
     blur_sigma: float = setting(0.0, 'Gaussian blur sigma [px]', (0.0, 10.0))
     noise_seed: int = setting(0, 'Seed of the pixel noise', (0, 2**31 - 1))
+    image_encoding: str = setting('rgb8', 'Encoding of image_raw, as a camera of that kind delivers the render '
+                                  '(Bayer: the mosaic of its filter pattern; YUV 4:2:2: even widths only)',
+                                  choices=tuple(ENCODINGS))
+    compressed_format: str = setting('none', "Also publish image_raw/compressed (image_transport's compressed "
+                                     'topic, made from image_raw) in this codec, while someone subscribes; none = not',
+                                     choices=('none', *COMPRESSED_FORMATS))
+    jpeg_quality: int = setting(90, 'JPEG quality of image_raw/compressed (image_transport: 95)', (1, 100))
+    png_level: int = setting(3, 'PNG compression level of image_raw/compressed (image_transport: 3)', (0, 9))
     marker_dictionary: str = setting('', "cv2.aruco dictionary of the hand markers; empty = the description's")
     marker_ids: tuple[int, ...] = setting((), "Marker ids, in the description's order; empty = the description's",
                                           array_type='integer')

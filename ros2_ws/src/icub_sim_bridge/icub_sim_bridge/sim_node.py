@@ -12,7 +12,12 @@ Topics published
 /camera/<name>/image_raw : sensor_msgs/Image
     One set of camera topics per simulated camera (``cameras``: the iCub's eyes ``left``,
     ``right``; a fixed camera of the description under its name).
-    rgb8 at ``image_rate`` (sim time), sensor-data QoS.
+    ``image_encoding`` (rgb8; or any camera encoding, e.g. a Bayer mosaic) at ``image_rate``
+    (sim time), sensor-data QoS.
+/camera/<name>/image_raw/compressed : sensor_msgs/CompressedImage
+    With ``compressed_format`` jpeg or png: the same frames as image_transport's compressed
+    publisher makes them from image_raw (format ``"<encoding>; jpeg compressed bgr8"``),
+    sensor-data QoS; encoded only while someone subscribes.
 /camera/<name>/camera_info : sensor_msgs/CameraInfo
     K, D (plumb_bob, zeros), R = I, P; with every image, reliable + transient local.
 /camera/<name>/pose : geometry_msgs/PoseStamped
@@ -53,9 +58,9 @@ Parameters
 Declared (read-only) from :class:`icub_sim_bridge.settings.SimSettings`: robot, the real robot
 (``true_dh_file``: any DH file of :mod:`calibration_interfaces.dh_file`, e.g. the estimator's
 exported ``calibrated_dh.yaml``; ``perturb_seed``), a change of that robot mid-run
-(``body_change``, ``body_change_at_command``), timing, cameras, image degradation and
-markers. docs/nodes/sim.md lists them with defaults and ranges; ``config/sim.yaml`` sets a
-run's values.
+(``body_change``, ``body_change_at_command``), timing, cameras, image degradation, image
+encoding and compression, and markers. docs/nodes/sim.md lists them with defaults and ranges;
+``config/sim.yaml`` sets a run's values.
 """
 from __future__ import annotations
 
@@ -75,7 +80,7 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rosgraph_msgs.msg import Clock as ClockMsg
-from sensor_msgs.msg import CameraInfo, Image, JointState
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, JointState
 from std_msgs.msg import Float64MultiArray, String
 from std_srvs.srv import Trigger
 from trajectory_msgs.msg import JointTrajectory
@@ -84,8 +89,9 @@ from body_schema.arm_visuals import description_urdf
 from body_schema.extrinsics import corrections, parse_std, perturb_pose, random_delta
 from body_schema.robot import load_robot
 from body_schema.sampling import perturb_dh, uniform_configs
-from calibration_interfaces.contract import RELIABLE, optical_frame
+from calibration_interfaces.contract import RELIABLE, image_topic, optical_frame
 from calibration_interfaces.dh_file import read_dh_file
+from calibration_interfaces.image_conversion import ENCODINGS, array_to_image_fields, compress, encode_rgb
 from calibration_interfaces.messages import extrinsics_to_msg, matrix_to_pose_msg, table_to_msg
 from calibration_interfaces.node_util import WarnThrottled, declare_settings, qos_profile, spin_node
 from calibration_interfaces.outcome import CONTACT_DIAGNOSTIC, ContactStatus, encode_contacts
@@ -122,6 +128,9 @@ class SimNode(Node):
         bad = [e for e in cameras if e not in r.camera_names]
         if bad:
             raise ValueError(f'cameras: unknown cameras {bad}; expected any of {sorted(r.camera_names)}')
+        if ENCODINGS[s.image_encoding].kind in ('uyvy', 'yuyv') and (s.image_width or r.camera.width) % 2:
+            raise ValueError(f'image_encoding {s.image_encoding} pairs pixels (4:2:2): it needs an even image width, '
+                             f'got {s.image_width or r.camera.width}')
 
         # The "real robot": nominal, a DH file, and/or a small seeded perturbation.
         true_dh = read_dh_file(s.true_dh_file, r.n_joints).dh if s.true_dh_file else r.dh.copy()
@@ -201,11 +210,14 @@ class SimNode(Node):
                                                          qos_profile('/body_schema/true_extrinsics'))
         self.pub_description = self.create_publisher(String, '/robot_description', qos_profile('/robot_description'))
         self.pub_diagnostics = self.create_publisher(DiagnosticArray, '/diagnostics', qos_profile('/diagnostics'))
-        self.pub_img, self.pub_info, self.pub_pose = {}, {}, {}
+        self.pub_img, self.pub_info, self.pub_pose, self.pub_compressed = {}, {}, {}, {}
         for eye in self.cameras:
             for pubs, cls, suffix in ((self.pub_img, Image, 'image_raw'), (self.pub_info, CameraInfo, 'camera_info'),
                                       (self.pub_pose, PoseStamped, 'pose')):
                 pubs[eye] = self.create_publisher(cls, f'/camera/{eye}/{suffix}', qos_profile(f'/camera/{eye}/{suffix}'))
+            if s.compressed_format != 'none':
+                name = image_topic(eye, 'compressed')
+                self.pub_compressed[eye] = self.create_publisher(CompressedImage, name, qos_profile(name))
         # A volatile subscription also takes the selector's latched command.
         self.create_subscription(JointTrajectory, '/arm/command', self._on_command, qos_profile(RELIABLE))
         self.create_service(Trigger, '~/apply_body_change', self._on_apply_body_change)
@@ -218,7 +230,8 @@ class SimNode(Node):
         self._timer = self.create_timer(period, self._tick, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.get_logger().info(
             f'simulating {self.robot.name} ({"perturbed" if not np.allclose(true_dh, self.robot.dh) else "nominal"} '
-            f'DH), cameras {list(self.cameras)} {self.intrinsics.width}x{self.intrinsics.height} at '
+            f'DH), cameras {list(self.cameras)} {self.intrinsics.width}x{self.intrinsics.height} {s.image_encoding}'
+            f'{"" if s.compressed_format == "none" else f" (+ {s.compressed_format} compressed)"} at '
             f'{s.image_rate} Hz, physics step {s.physics_step} s, real-time factor {self.rtf}')
         if np.any(cam_delta) or np.any(marker_delta):
             self.get_logger().info(
@@ -258,12 +271,22 @@ class SimNode(Node):
         for eye, pose in self.real_cameras.items():    # rendered from the real poses
             rgb = self.world.render(pose, self.intrinsics, supersample=self._supersample)
             rgb = degrade(rgb, self._noise_std, self._blur, self._rng)
+            s = self.settings
+            frame = rgb if s.image_encoding == 'rgb8' else encode_rgb(rgb, s.image_encoding)
             img = Image()
             img.header.stamp, img.header.frame_id = stamp, optical_frame(eye)
-            img.height, img.width = rgb.shape[:2]
-            img.encoding, img.is_bigendian, img.step = 'rgb8', 0, rgb.shape[1] * 3
-            img.data = rgb.tobytes()    # bytes: ~0.1 ms; a numpy array would take ~50 ms
+            # data as bytes: ~0.1 ms; a numpy array would take ~50 ms
+            for k, v in array_to_image_fields(frame, s.image_encoding).items():
+                setattr(img, k, v)
             self.pub_img[eye].publish(img)
+            pub = self.pub_compressed.get(eye)
+            if pub is not None and pub.get_subscription_count():     # image_transport encodes only for someone
+                comp = CompressedImage()
+                comp.header = img.header
+                fields = compress(frame, s.image_encoding, s.compressed_format, jpeg_quality=s.jpeg_quality,
+                                  png_level=s.png_level)
+                comp.format, comp.data = fields['format'], fields['data']
+                pub.publish(comp)
             self.pub_info[eye].publish(self._camera_info(eye, stamp))
 
     def _publish_joints(self, stamp: TimeMsg) -> None:

@@ -10,10 +10,12 @@ from body_schema.robot import load_robot
 from builtin_interfaces.msg import Duration
 from geometry_msgs.msg import PoseStamped
 from rosgraph_msgs.msg import Clock
-from sensor_msgs.msg import CameraInfo, Image, JointState
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, JointState
 from std_msgs.msg import Float64MultiArray
 from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
+from calibration_interfaces.image_conversion import compress, compressed_to_array, image_to_array
+from icub_sim_bridge import sim_node
 from icub_sim_bridge.sim_node import SimNode
 
 ROBOT = load_robot()
@@ -119,6 +121,37 @@ def test_rgb8_layout_and_joint_state_rate(ros) -> None:
     stamps = np.array([m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in probe.joint_states])
     assert np.all(np.diff(stamps) > 0)
     assert np.median(np.diff(stamps)) <= 20_000_000          # >= 50 Hz in sim time
+
+
+def test_a_bayer_camera_with_the_compressed_transport(ros, monkeypatch) -> None:
+    """image_encoding: the render as a Bayer mosaic; compressed_format: image_raw/compressed as
+    image_transport makes it from image_raw, encoded only while someone subscribes."""
+    encoded = []
+    monkeypatch.setattr(sim_node, 'compress', lambda *a, **k: (encoded.append(1), compress(*a, **k))[1])
+    make_sim(ros, cameras=['left'], image_encoding='bayer_rggb8', compressed_format='png')
+    probe = Probe(ros)
+    raw: dict[tuple[int, int], Image] = {}
+    probe.node.create_subscription(Image, '/camera/left/image_raw',
+                                   lambda m: raw.__setitem__((m.header.stamp.sec, m.header.stamp.nanosec), m),
+                                   qos_profile_sensor_data)
+    ros.spin_until(lambda: len(raw) >= 3, 20.0, 'raw images')
+    assert encoded == []                          # nobody subscribed to the compressed topic
+    packed: list[CompressedImage] = []
+    probe.node.create_subscription(CompressedImage, '/camera/left/image_raw/compressed', packed.append,
+                                   qos_profile_sensor_data)
+    ros.spin_until(lambda: any((p.header.stamp.sec, p.header.stamp.nanosec) in raw for p in packed), 20.0,
+                   'a compressed image and its raw one')
+    pair = next(p for p in packed if (p.header.stamp.sec, p.header.stamp.nanosec) in raw)
+    img = raw[(pair.header.stamp.sec, pair.header.stamp.nanosec)]
+    assert (img.encoding, img.step, img.width) == ('bayer_rggb8', 320, 320)
+    mosaic = image_to_array(img)
+    assert mosaic.shape == (240, 320) and mosaic.std() > 10
+    assert pair.format == 'bayer_rggb8; png compressed ' and pair.header.frame_id == img.header.frame_id
+    np.testing.assert_array_equal(compressed_to_array(pair), mosaic)           # PNG: the same mosaic
+    np.testing.assert_array_equal(compressed_to_array(pair, 'rgb8'), image_to_array(img, 'rgb8'))
+    with pytest.raises(ValueError, match='even'):
+        SimNode(context=ros.context, parameter_overrides=[Parameter('image_encoding', value='yuyv'),
+                                                          Parameter('image_width', value=321)])
 
 
 def test_command_moves_arm_to_target_in_sim_time_at_bounded_speed(ros) -> None:

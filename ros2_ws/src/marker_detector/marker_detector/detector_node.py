@@ -1,13 +1,18 @@
 """ROS 2 node: ArUco hand-pose detection with a pose-dependent noise model.
 
 A thin layer over :mod:`marker_detector.detection` (geometry), :mod:`marker_detector.stereo`
-(pairing the eyes) and :mod:`marker_detector.image_conversion` (what cv_bridge would do).
+(pairing the eyes) and :mod:`calibration_interfaces.image_conversion` (what cv_bridge would do).
 
 Subscribes
 ----------
-``/camera/left/image_raw`` (sensor_msgs/Image, rgb8/bgr8/mono8; sensor-data QoS)
+``/camera/left/image_raw`` (sensor_msgs/Image, any camera encoding of
+:mod:`calibration_interfaces.image_conversion`: mono8/16, rgb/bgr(a)8/16, Bayer 8/16, YUV 4:2:2;
+sensor-data QoS), or with ``transport: compressed`` ``/camera/left/image_raw/compressed``
+(sensor_msgs/CompressedImage, JPEG or PNG as image_transport's compressed plugin publishes it)
 ``/camera/left/camera_info`` (sensor_msgs/CameraInfo; sensor-data QoS, which matches both
-reliable and best-effort publishers)
+reliable and best-effort publishers). With ``camera_info_url`` the intrinsics come from that
+camera_info_manager file (``ost.yaml``) instead; the topic is then only compared with it, and
+the first difference is logged once, naming what differs.
 ``/camera/left/pose`` (geometry_msgs/PoseStamped: optical frame in root_link; reliable,
 transient local so the latched pose reaches a late joiner)
 ``/camera/right/...`` the same three, when ``use_right_eye`` is true.
@@ -30,7 +35,8 @@ call site, so a burst of one kind does not hide another.
 
 Parameters
 ----------
-Declared from :class:`marker_detector.detector_node.DetectorNodeSettings` (robot, stereo),
+Declared from :class:`marker_detector.detector_node.DetectorNodeSettings` (robot, stereo,
+transport, Bayer demosaicing, camera_info_url),
 :class:`calibration_interfaces.noise.NoiseSettings` and
 :class:`~calibration_interfaces.noise.PoseDependentSettings` (``noise_model``: ``pose_dependent``
 | ``constant``, and their coefficients: by default the robot description's fitted law) and
@@ -55,10 +61,12 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped
 from numpy.typing import NDArray
 from rclpy.node import Node
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from body_schema import load_robot
-from calibration_interfaces.contract import SENSOR
+from calibration_interfaces.camera_info_file import CameraInfoFile, camera_info_differences, read_camera_info
+from calibration_interfaces.contract import IMAGE_TRANSPORTS, SENSOR, image_topic
+from calibration_interfaces.image_conversion import DEMOSAICING
 from calibration_interfaces.messages import matrix_to_pose_msg, pose_msg_to_matrix
 from calibration_interfaces.node_util import WarnOnce, WarnThrottled, declare_settings, qos_profile, spin_node
 from calibration_interfaces.noise import NoiseSettings, PoseDependentSettings
@@ -79,6 +87,15 @@ class DetectorNodeSettings:
     robot: str = setting('icub_right_arm', 'Packaged robot name or path of a robot YAML')
     use_right_eye: bool = setting(False, 'Also process the right eye and fuse the pair')
     stereo_timeout: float = setting(0.5, 'Seconds one eye waits for the other eye of the same stamp', (0.0, 10.0))
+    transport: str = setting('raw', 'Image transport: raw (camera/<eye>/image_raw, sensor_msgs/Image) or compressed '
+                             '(camera/<eye>/image_raw/compressed, JPEG or PNG)', choices=IMAGE_TRANSPORTS)
+    demosaicing: str = setting('vng', 'Demosaicing of Bayer images: vng (corners closest to a colour camera\'s, '
+                               'tools/encoding_bench.py), edge_aware, or bilinear (cv_bridge\'s, the fastest)',
+                               choices=DEMOSAICING)
+    camera_info_url: str = setting('', 'Left (or only) camera\'s intrinsics from a camera_info_manager YAML file '
+                                   '(ost.yaml; file://, package:// or a path) instead of its camera_info topic; '
+                                   'empty = the topic')
+    right_camera_info_url: str = setting('', 'The same for the right eye (with use_right_eye); empty = its topic')
 
 
 def _stamp_key(stamp: Any) -> tuple[int, int]:
@@ -88,11 +105,16 @@ def _stamp_key(stamp: Any) -> tuple[int, int]:
 class _Eye:
     """Latest calibration and pose of one eye."""
 
-    def __init__(self, name: str) -> None:
+    def __init__(self, name: str, file: CameraInfoFile | None = None) -> None:
         self.name = name
-        # The latest camera_info decides (a camera sends one with every frame): usable, or why not.
+        # The latest camera_info decides (a camera sends one with every frame): usable, or why not;
+        # a calibration file decides instead when there is one (the topic is only compared).
+        self.file = file
         self.calibration: CameraCalibration | BadInput = BadInput(
             'camera_info.missing', f'no camera_info for the {name} eye yet')
+        if file is not None:
+            self.calibration = calibration_from_info(file.k.reshape(-1), file.d, file.width, file.height)
+        self.file_differs = False
         self.root_T_cam: NDArray[np.float64] | None = None
         self.last_stamp: tuple[int, int] | None = None
 
@@ -115,17 +137,22 @@ class DetectorNode(Node):
         self.estimator = HandPoseEstimator(self.model, self.noise.build(self.model, pdn), config)
         self.root_frame = self.model.root_frame
         self.stereo = s.use_right_eye
+        self.demosaicing = s.demosaicing
         self._warn_once = WarnOnce(self)
         self._warn = WarnThrottled(self)
         self.frames_processed = 0
         self.frame_counts = {s: 0 for s in FrameStatus}     # published verdicts, for tests and logs
-        self.eyes = {name: _Eye(name) for name in (('left', 'right') if self.stereo else ('left',))}
+        urls = {'left': s.camera_info_url, 'right': s.right_camera_info_url}
+        self.eyes = {name: _Eye(name, read_camera_info(urls[name]) if urls[name] else None)
+                     for name in (('left', 'right') if self.stereo else ('left',))}
+        image_type = Image if s.transport == 'raw' else CompressedImage
         self.pairer = StereoPairer(tuple(self.eyes), s.stereo_timeout)
         self.pub_hand = self.create_publisher(PoseWithCovarianceStamped, 'hand_pose', qos_profile('/hand_pose'))
         self.pub_markers = self.create_publisher(PoseArray, 'markers', qos_profile('/markers'))
         self.pub_diagnostics = self.create_publisher(DiagnosticArray, '/diagnostics', qos_profile('/diagnostics'))
         for name, eye in self.eyes.items():
-            self.create_subscription(Image, f'camera/{name}/image_raw',
+            # A relative name (no leading /), so a namespace or a remap points it at a real camera.
+            self.create_subscription(image_type, image_topic(name, s.transport).lstrip('/'),
                                      lambda m, e=eye: self._on_image(e, m), qos_profile(SENSOR))
             # Best effort matches both reliable and best-effort camera_info publishers.
             self.create_subscription(CameraInfo, f'camera/{name}/camera_info',
@@ -137,11 +164,33 @@ class DetectorNode(Node):
         self.get_logger().info(
             f'marker_detector: robot {self.model.name}, markers '
             f'{[m.marker_id for m in self.model.markers]}, noise {self.noise.noise_model}, fusion {config.fusion}, '
-            f'eyes {list(self.eyes)}')
+            f'eyes {list(self.eyes)}, transport {s.transport}')
+        for eye in self.eyes.values():
+            if eye.file is not None:
+                self._check_model(eye, eye.file.distortion_model, bool(eye.file.d.size))
+                self.get_logger().info(
+                    f'{eye.name} eye: intrinsics from {eye.file.source} ({eye.file.camera_name or "unnamed"}, '
+                    f'{eye.file.width} x {eye.file.height}, fx {eye.file.k[0, 0]:g}); its camera_info topic is '
+                    f'only compared with them')
 
     # ------------------------------------------------------------------ inputs
 
+    def _check_model(self, eye: _Eye, model: str, has_distortion: bool) -> None:
+        if has_distortion and model not in DISTORTION_MODELS:
+            self._warn_once(f'distmodel-{eye.name}', f'{eye.name} camera_info: distortion model '
+                            f'{model!r} treated as plumb_bob')
+
     def _on_info(self, eye: _Eye, msg: CameraInfo) -> None:
+        if eye.file is not None:
+            # The file decides; say once if the driver's camera_info tells another story.
+            if not eye.file_differs:
+                diff = camera_info_differences(eye.file, msg.width, msg.height, msg.k, msg.d, msg.distortion_model)
+                if diff:
+                    eye.file_differs = True
+                    self.get_logger().warning(
+                        f'{eye.name} camera_info topic disagrees with {eye.file.source} ({"; ".join(diff)}); '
+                        f'the file is used')
+            return
         try:
             eye.calibration = calibration_from_info(msg.k, msg.d, msg.width, msg.height)
         except BadInput as exc:
@@ -149,9 +198,7 @@ class DetectorNode(Node):
             self._warn(f'{eye.name}.{exc.kind}', f'{eye.name} camera_info rejected: {exc}; its frames are '
                        f'bad input until a valid one arrives')
             return
-        if len(msg.d) and msg.distortion_model not in DISTORTION_MODELS:
-            self._warn_once(f'distmodel-{eye.name}', f'{eye.name} camera_info: distortion model '
-                            f'{msg.distortion_model!r} treated as plumb_bob')
+        self._check_model(eye, msg.distortion_model, bool(len(msg.d)))
 
     def _on_pose(self, eye: _Eye, msg: PoseStamped) -> None:
         try:
@@ -164,7 +211,7 @@ class DetectorNode(Node):
             self._warn_once(f'poseframe-{eye.name}', f'{eye.name} camera pose is in '
                             f'{msg.header.frame_id!r}, expected {self.root_frame!r}; used as is')
 
-    def _on_image(self, eye: _Eye, msg: Image) -> None:
+    def _on_image(self, eye: _Eye, msg: Image | CompressedImage) -> None:
         key = _stamp_key(msg.header.stamp)
         if key == eye.last_stamp:
             # A re-sent frame is the same evidence, not a second observation.
@@ -175,7 +222,7 @@ class DetectorNode(Node):
             result = FrameResult(bad_input=BadInput('pose.missing', f'no camera pose for the {eye.name} eye yet'))
         else:
             try:
-                result = judge_frame(self.estimator, msg, eye.calibration, eye.root_T_cam)
+                result = judge_frame(self.estimator, msg, eye.calibration, eye.root_T_cam, self.demosaicing)
             except Exception as exc:  # noqa: BLE001 (OpenCV surprises must not kill the node)
                 # Not evidence about the hand either way: a frame nobody could judge.
                 result = FrameResult(bad_input=BadInput(f'internal.{type(exc).__name__}',

@@ -16,8 +16,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from calibration_interfaces.image_conversion import ImageConversionError, message_to_gray
+
 from .detection import BadInput, FrameResult, HandPoseEstimator
-from .image_conversion import ImageConversionError, image_to_gray
 
 __all__ = ['DISTORTION_MODELS', 'CameraCalibration', 'calibration_from_info', 'judge_frame']
 
@@ -75,17 +76,20 @@ def calibration_from_info(k: Sequence[float], d: Sequence[float], width: int, he
 
 
 def judge_frame(estimator: HandPoseEstimator, image: Any, calibration: CameraCalibration | BadInput,
-                root_T_cam: NDArray[np.float64] | None) -> FrameResult:
+                root_T_cam: NDArray[np.float64] | None, demosaicing: str = 'bilinear') -> FrameResult:
     """Detect the hand in one image, or say why the image cannot be judged.
 
     Parameters
     ----------
     estimator : HandPoseEstimator
-    image : sensor_msgs/Image or any object with its fields (see :mod:`.image_conversion`)
+    image : sensor_msgs/Image or CompressedImage, or any object with their fields (see
+        :mod:`calibration_interfaces.image_conversion`)
     calibration : CameraCalibration or BadInput
         The eye's latest camera_info: usable, or why it is not (a missing one included).
     root_T_cam : ndarray, shape (4, 4), or None
         Camera pose in the root frame; None gives the hand in the camera frame.
+    demosaicing : {'bilinear', 'edge_aware', 'vng'}
+        For a Bayer image (:data:`calibration_interfaces.image_conversion.DEMOSAICING`).
 
     Returns
     -------
@@ -97,7 +101,7 @@ def judge_frame(estimator: HandPoseEstimator, image: Any, calibration: CameraCal
     if isinstance(calibration, BadInput):
         return FrameResult(bad_input=calibration)
     try:
-        gray = image_to_gray(image)
+        gray = message_to_gray(image, demosaicing)
     except ImageConversionError as exc:
         return FrameResult(bad_input=BadInput(f'image.{exc.field}', str(exc)))
     if calibration.size is not None and calibration.size != (gray.shape[1], gray.shape[0]):

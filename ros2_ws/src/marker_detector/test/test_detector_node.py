@@ -8,16 +8,17 @@ import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped
 from rclpy.parameter import Parameter
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from body_schema import load_robot
 from body_schema.kinematics import rotation_angle_deg
 from body_schema.noise import PoseDependentNoise, view_geometry
+from calibration_interfaces.camera_info_file import CameraInfoFile, CameraInfoFileError, write_camera_info
+from calibration_interfaces.image_conversion import array_to_image_fields, compress, encode_rgb, rgb_to_image_fields
 from calibration_interfaces.messages import matrix_to_pose_msg, pose_msg_to_matrix
 from calibration_interfaces.node_util import qos_profile
 from calibration_interfaces.outcome import DETECTOR_DIAGNOSTIC, FrameReport, FrameStatus, decode_frame
 from marker_detector.detector_node import DetectorNode
-from marker_detector.image_conversion import array_to_image_fields
 from marker_detector.synthetic import look_at_pose, render_markers
 
 SENSOR_QOS = 5
@@ -152,6 +153,79 @@ def test_detects_hand_and_publishes_contract(ros: Any, model) -> None:
     np.testing.assert_allclose(pose_msg_to_matrix(marker.poses[0])[:3, 3], cam_T_m[:3, 3], atol=0.006)
 
 
+def _assert_near_truth(model, hand: PoseWithCovarianceStamped, q: np.ndarray) -> None:
+    truth = model.forward_kinematics(q)
+    est = pose_msg_to_matrix(hand.pose.pose)
+    assert np.linalg.norm(est[:3, 3] - truth[:3, 3]) < 0.006
+    assert rotation_angle_deg(est[:3, :3], truth[:3, :3]) < 2.0
+
+
+@pytest.mark.parametrize('encoding, codec', [('bayer_rggb8', ''), ('yuv422', ''), ('rgb8', 'jpeg')])
+def test_camera_encodings_and_the_compressed_transport(ros: Any, model, encoding: str, codec: str) -> None:
+    """A Bayer or YUV camera, or image_transport's compressed topic (transport: compressed),
+    gives the hand pose an rgb8 camera gives."""
+    cam, probe = Camera(ros, model), Probe(ros)
+    cam.publish_pose()
+    det = _detector(ros, transport='compressed' if codec else 'raw')
+    pub = cam.node.create_publisher(CompressedImage, '/camera/left/image_raw/compressed', SENSOR_QOS) \
+        if codec else cam.image
+    ros.spin_until(lambda: pub.get_subscription_count() >= 1 and det.pub_hand.get_subscription_count() >= 1
+                   and det.eyes['left'].root_T_cam is not None, 10.0, 'discovery')
+    assert cam.image.get_subscription_count() == (0 if codec else 1)     # one transport only
+    rgb = cam.render(Q)
+
+    def send() -> bool:
+        cam.publish_info()
+        msg = CompressedImage() if codec else Image()
+        msg.header.stamp.sec = 3
+        fields = (compress(encode_rgb(rgb, encoding), encoding, codec, jpeg_quality=90) if codec
+                  else rgb_to_image_fields(rgb, encoding))
+        for k, v in fields.items():
+            setattr(msg, k, v)
+        pub.publish(msg)
+        return len(probe.hands) > 0
+
+    ros.spin_until(send, 10.0, f'/hand_pose from {encoding} {codec or "raw"}')
+    _assert_near_truth(model, probe.hands[-1], Q)
+
+
+def test_intrinsics_from_a_calibration_file(ros: Any, model, tmp_path, monkeypatch) -> None:
+    """camera_info_url: the file's intrinsics are used from the start, without any camera_info
+    topic; a driver's camera_info that disagrees is named once (what differs) and ignored."""
+    k = model.camera
+    path = write_camera_info(tmp_path / 'ost.yaml', CameraInfoFile(k.width, k.height, k.K, camera_name='left'))
+    cam, probe = Camera(ros, model), Probe(ros)
+    cam.publish_pose()
+    det = _detector(ros, camera_info_url=f'file://{path}')
+    logged = _Logged()
+    monkeypatch.setattr(det, 'get_logger', lambda: logged)
+    np.testing.assert_array_equal(det.eyes['left'].k, k.K)
+    ros.spin_until(lambda: cam.image.get_subscription_count() >= 1 and det.pub_hand.get_subscription_count() >= 1
+                   and det.eyes['left'].root_T_cam is not None, 10.0, 'discovery')
+    rgb = cam.render(Q)
+    ros.spin_until(lambda: (cam.publish_image(rgb, sec=5), len(probe.hands) > 0)[1], 10.0, 'hand without camera_info')
+    _assert_near_truth(model, probe.hands[-1], Q)
+
+    def publish_wrong() -> None:
+        msg = CameraInfo(width=640, height=480, distortion_model='plumb_bob', d=[0.0] * 5,
+                         k=(k.K * [[2.0], [2.0], [1.0]]).reshape(-1).tolist())
+        cam.info.publish(msg)
+
+    ros.spin_until(lambda: (publish_wrong(), len(logged.warnings) > 0)[1], 5.0, 'a warning about camera_info')
+    for _ in range(5):
+        publish_wrong()
+        ros.spin_for(0.02)
+    assert len(logged.warnings) == 1, logged.warnings
+    assert 'size: 320 x 240 in the file vs 640 x 480' in logged.warnings[0] and 'fx 257.34' in logged.warnings[0]
+    assert str(path) in logged.warnings[0]
+    np.testing.assert_array_equal(det.eyes['left'].k, k.K)             # the file still decides
+    ros.spin_until(lambda: (cam.publish_image(rgb, sec=6), any(h.header.stamp.sec == 6 for h in probe.hands))[1],
+                   10.0, 'hand after the wrong camera_info')
+    with pytest.raises(CameraInfoFileError, match='nothing.yaml'):
+        DetectorNode(context=ros.context, parameter_overrides=[
+            Parameter('camera_info_url', value=f'file://{tmp_path}/nothing.yaml')])
+
+
 class _Logged:
     """Records what the node logs (a stand-in for its rclpy logger)."""
 
@@ -213,7 +287,7 @@ def test_bad_input_is_not_a_failed_detection(ros: Any, model, monkeypatch) -> No
     for i, kw in enumerate(good):
         assert send(10 + i, **kw).status is FrameStatus.NO_MARKER
     bad = [
-        (dict(rgb=zeros, encoding='rgba16'), 'image.encoding'),
+        (dict(rgb=zeros, encoding='32FC1'), 'image.encoding'),       # a depth image
         (dict(rgb=zeros, data=b'\x00' * 100), 'image.data'),        # truncated
         (dict(rgb=zeros, step=10), 'image.step'),
         (dict(rgb=None), 'image.encoding'),                          # empty message

@@ -15,7 +15,7 @@ from body_schema.noise import PoseDependentNoise
 from calibration_interfaces.outcome import FrameStatus
 from marker_detector.detection import BadInput, HandPoseEstimator
 from marker_detector.frame import calibration_from_info, judge_frame
-from marker_detector.image_conversion import array_to_image_fields
+from calibration_interfaces.image_conversion import array_to_image_fields
 from marker_detector.synthetic import look_at_pose, render_markers
 
 
@@ -55,7 +55,7 @@ def test_a_valid_frame_is_detected_and_an_empty_one_is_no_marker(estimator, scen
 
 
 @pytest.mark.parametrize('override, kind', [
-    (dict(encoding='rgba16'), 'image.encoding'),
+    (dict(encoding='32FC1'), 'image.encoding'),         # a depth image
     (dict(data=b'\x00' * 100), 'image.data'),                         # truncated payload
     (dict(step=10), 'image.step'),                                     # step shorter than a row
     (dict(height=0, width=0, step=0, data=b''), 'image.height/width'),  # empty message

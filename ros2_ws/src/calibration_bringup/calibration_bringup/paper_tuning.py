@@ -243,6 +243,8 @@ def _run_point(stage: Stage, point: Mapping[str, float], values: Mapping[str, fl
     if stage.name == 'movement':        # gamma points run UCSAL, delta points CCSAL
         methods = ('UCSAL',) if 'gamma' in point else ('CCSAL',)
     root = point_dir(Path(args.output), tuned, methods, stage.constant_noise)
+    # 'ours' adds nothing to the parameter files (SYSTEMS['ours'] is empty): with paper_system(tuned)
+    # as overrides this is the paper's system at the point's constants (the log names it 'ours').
     config = ExperimentConfig(repetitions=args.repetitions, iterations=args.iterations, methods=methods,
                               system='ours', jobs=args.jobs, output=root, seed_base=SEED_BASE, record=False,
                               figures=False, overrides=overrides)

@@ -392,7 +392,9 @@ def run_graph(spec: RunSpec, domain_id: int, settings: GraphSettings = GraphSett
     from body_schema.metrics import PoseErrorEvaluator
 
     rows: list[dict[str, Any]] = []
-    with ros_session(domain_id, qos_events=False) as (ctx, executor):
+    # The whole graph lives in this process: discovery OFF keeps another run (or a test) that
+    # drew the same domain id on this machine from mixing its messages into this one's.
+    with ros_session(domain_id, qos_events=False, discovery='OFF') as (ctx, executor):
         try:
             graph = InProcessGraph(ctx, executor, node_parameters(spec, settings, system, overrides), record_path,
                                    time_callbacks=True)
@@ -415,9 +417,14 @@ def run_graph(spec: RunSpec, domain_id: int, settings: GraphSettings = GraphSett
                          **{c: 0.0 for c in ('render_s', 'cpu_s', 'wall_s', *_NODE_COLUMNS)}})
             last = {'wall': time.perf_counter(), 'cpu': time.process_time(), **totals()}
             tables: list[np.ndarray] = []
+            foreign: list[int] = []
 
             def on_progress(msg: String) -> None:
                 rec = json.loads(msg.data)
+                if int(rec['iteration']) != len(rows):
+                    # Records come in order, one per iteration: anything else is another graph's.
+                    foreign.append(int(rec['iteration']))
+                    return
                 now, cpu = time.perf_counter(), time.process_time()
                 tables.append(est.estimator.dh.copy())
                 row = {**base, 'iteration': int(rec['iteration']), 'outcome': rec['outcome'],
@@ -443,6 +450,9 @@ def run_graph(spec: RunSpec, domain_id: int, settings: GraphSettings = GraphSett
                 graph.spin_once(timeout_sec=0.05)
                 if not ctx.ok():
                     raise KeyboardInterrupt    # rclpy's signal handler shut the context down
+                if foreign:
+                    raise RunError(f'{spec.label}: progress record for iteration {foreign[0]} while expecting '
+                                   f'{len(rows)}: another graph on ROS_DOMAIN_ID {domain_id}?')
                 if len(rows) > n:
                     # Scored after the fact so the loop pays nothing; the table is the one current
                     # when the record arrived.

@@ -96,12 +96,17 @@ def recorder_available() -> bool:
 
 
 @contextmanager
-def ros_session(domain_id: int, qos_events: bool = True) -> Iterator[tuple[Any, Any]]:
-    """A fresh ``Context`` on ``domain_id`` (localhost discovery) and a ``SingleThreadedExecutor``.
+def ros_session(domain_id: int, qos_events: bool = True,
+                discovery: str = 'LOCALHOST') -> Iterator[tuple[Any, Any]]:
+    """A fresh ``Context`` on ``domain_id`` and a ``SingleThreadedExecutor``.
 
     Parameters
     ----------
     domain_id : int
+    discovery : {'LOCALHOST', 'OFF'}
+        ``ROS_AUTOMATIC_DISCOVERY_RANGE`` for the context. ``OFF`` confines it to its own
+        process (its nodes still talk to each other): a graph that lives in one process then
+        cannot meet another on the same domain id, which a pid-derived id does not rule out.
     qos_events : bool
         Wait on the QoS event handlers rclpy gives every publisher and subscription (their
         default callbacks warn about incompatible QoS or types). An in-process graph takes all
@@ -123,7 +128,9 @@ def ros_session(domain_id: int, qos_events: bool = True) -> Iterator[tuple[Any, 
         def can_execute(self, entity: Any) -> bool:
             return not isinstance(entity, EventHandler) and super().can_execute(entity)
 
-    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = 'LOCALHOST'
+    if discovery not in ('LOCALHOST', 'OFF'):
+        raise ValueError(f"discovery must be 'LOCALHOST' or 'OFF', got {discovery!r}")
+    os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = discovery
     ctx = Context()
     rclpy.init(context=ctx, domain_id=domain_id)
     executor = (SingleThreadedExecutor if qos_events else WithoutQosEvents)(context=ctx)

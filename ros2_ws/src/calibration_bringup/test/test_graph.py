@@ -81,3 +81,55 @@ def test_a_session_without_qos_events_delivers_but_never_waits_on_event_handlers
             executor.remove_node(node)
             node.destroy_node()
         assert got and got[0].data == 'x', f'qos_events={qos_events}: no message within 10 s'
+
+
+_TALKER = """
+import sys, time, rclpy
+from rclpy.context import Context
+from std_msgs.msg import String
+ctx = Context(); rclpy.init(context=ctx, domain_id=int(sys.argv[1]))
+node = rclpy.create_node('other_graph', context=ctx)
+pub = node.create_publisher(String, 'chatter', 10)
+end = time.monotonic() + float(sys.argv[2])
+while time.monotonic() < end:
+    pub.publish(String(data='other')); time.sleep(0.02)
+"""
+
+
+def test_a_session_without_discovery_hears_only_its_own_process() -> None:
+    import subprocess
+    import sys
+
+    from rclpy.node import Node
+
+    domain = 190 + os.getpid() % 10      # clear of the fixture's 1..100 and the experiment's
+    env = {**os.environ, 'ROS_AUTOMATIC_DISCOVERY_RANGE': 'LOCALHOST'}
+    talker = subprocess.Popen([sys.executable, '-c', _TALKER, str(domain), '60'], env=env)
+    try:
+        heard = {}
+        for discovery in ('LOCALHOST', 'OFF'):
+            with ros_session(domain, discovery=discovery) as (ctx, executor):
+                node = Node('listener', context=ctx)
+                executor.add_node(node)
+                got: set[str] = set()
+                node.create_subscription(String, 'chatter', lambda m: got.add(m.data), 10)
+                pub = node.create_publisher(String, 'chatter', 10)
+                # LOCALHOST must meet the talker (the control); OFF gets 5 s to wrongly do so.
+                deadline = time.monotonic() + (20.0 if discovery == 'LOCALHOST' else 5.0)
+                while time.monotonic() < deadline and not (discovery == 'LOCALHOST' and 'other' in got):
+                    pub.publish(String(data='own'))
+                    executor.spin_once(timeout_sec=0.01)
+                executor.remove_node(node)
+                node.destroy_node()
+            heard[discovery] = got
+    finally:
+        talker.kill()
+        talker.wait()
+    assert 'other' in heard['LOCALHOST'], 'control: the other process never reached a LOCALHOST session'
+    assert heard['OFF'] == {'own'}, heard['OFF']
+
+
+def test_a_session_refuses_an_unknown_discovery_range() -> None:
+    with pytest.raises(ValueError, match='SUBNET'):
+        with ros_session(1, discovery='SUBNET'):
+            pass

@@ -29,22 +29,22 @@ __all__ = ['PAPER_TUNED', 'paper_system', 'PAPER', 'SYSTEMS', 'AblationStep', 'A
 PAPER_TUNED: dict[str, float] = {
     # Process noise Q per update, as a fraction of the initial covariance's diagonal (the paper's
     # uniform widths, 46 mm and 54 deg: w^2 / 12 per parameter).
-    'q_fraction': 1e-4,
+    'q_fraction': 1e-5,
     # The single noise law sigma^2 = a r^2 + b (phi - 45)^2, R = sigma^2 I (m, rad; r in m, phi in deg).
-    'noise_a': 1e-4,
-    'noise_b': 1e-7,
+    'noise_a': 1e-2,
+    'noise_b': 1e-4,
     # CN: one constant sigma for every component (m, rad).
-    'cn_sigma': 0.01,
+    'cn_sigma': 0.09,
     # The cost's a * arctan(b * p_x) (p_x in m).
-    'penalty_a': 1e-3,
+    'penalty_a': 0.1,
     'penalty_b': 10.0,
     # The smoothed Beta's squared-exponential kernel width (normalised joints).
-    'length_scale': 0.1,
+    'length_scale': 0.2,
     # DIRECT's evaluations per selection.
     'max_evals': 1000,
     # UCSAL's weight on the normalised L1 distance, CCSAL's half-width (normalised joints).
-    'gamma': 0.01,
-    'delta': 0.3,
+    'gamma': 1e-5,
+    'delta': 0.2,
 }
 
 

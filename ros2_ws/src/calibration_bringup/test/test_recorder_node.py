@@ -7,7 +7,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, Iterator
 
 import pytest
 from geometry_msgs.msg import PoseWithCovarianceStamped
@@ -127,6 +127,23 @@ def test_refuses_to_overwrite_when_told(ros: Any, tmp_path: Path) -> None:
 
 # --- the recorder as a process ---------------------------------------------------------------
 
+@pytest.fixture
+def start_recorder(ros: Any) -> Iterator[Callable[..., subprocess.Popen]]:
+    """Starts recorder processes; kills any still running when the test ends (a failed wait
+    would otherwise leave one recording for the rest of the session)."""
+    procs: list[subprocess.Popen] = []
+
+    def start(path: Path, *params: str) -> subprocess.Popen:
+        procs.append(_start_recorder(ros, path, *params))
+        return procs[-1]
+
+    yield start
+    for proc in procs:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate(timeout=15)
+
+
 def _start_recorder(ros: Any, path: Path, *params: str) -> subprocess.Popen:
     env = dict(os.environ, ROS_DOMAIN_ID=str(ros.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
     exe = Path(sys.executable).parent / 'recorder_node'
@@ -174,9 +191,9 @@ def _stop(proc: subprocess.Popen, sig: int) -> str:
     return out
 
 
-def test_sigterm_finishes_the_file(ros: Any, tmp_path: Path) -> None:
+def test_sigterm_finishes_the_file(ros: Any, tmp_path: Path, start_recorder: Callable[..., subprocess.Popen]) -> None:
     path = tmp_path / 'term.mcap'
-    proc = _start_recorder(ros, path, 'flush_period:=0.05')
+    proc = start_recorder(path, 'flush_period:=0.05')
     _publish_chatter(ros, proc, [f'm{i}' for i in range(10)])
     _wait_on_disk(ros, path, 10, proc)
     out = _stop(proc, signal.SIGTERM)
@@ -190,14 +207,15 @@ def test_sigterm_finishes_the_file(ros: Any, tmp_path: Path) -> None:
         assert [r.deserialize(raw, c.msgtype).data for c, _, raw in r.messages()] == [f'm{i}' for i in range(10)]
 
 
-def test_sigkill_leaves_every_complete_chunk_readable(ros: Any, tmp_path: Path) -> None:
+def test_sigkill_leaves_every_complete_chunk_readable(ros: Any, tmp_path: Path,
+                                                     start_recorder: Callable[..., subprocess.Popen]) -> None:
     from mcap.exceptions import EndOfFile
     from mcap.reader import NonSeekingReader
     from mcap_ros2.decoder import DecoderFactory
 
     path = tmp_path / 'killed.mcap'
     # Small chunks, written only when full: the kill must lose exactly the chunk being built.
-    proc = _start_recorder(ros, path, 'chunk_size:=4096', 'flush_period:=0.0')
+    proc = start_recorder(path, 'chunk_size:=4096', 'flush_period:=0.0')
     texts = [f'{i:03d}' + 'x' * 1000 for i in range(30)]   # about 4 messages per chunk
     _publish_chatter(ros, proc, texts)
     _wait_on_disk(ros, path, 20, proc)

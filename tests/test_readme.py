@@ -2,7 +2,7 @@
 
 Every fenced ``bash`` block of README.md is run (``text`` blocks are output, ``bibtex`` a
 citation): each command line with the small settings of ``SMALL`` (a 3-iteration demo, a
-2-iteration experiment of one method and repetition, the site built into a temporary
+2-iteration experiment of one method and repetition for each system, the site built into a temporary
 directory), paths under ``results/`` and the user's ``my_arm.yaml`` moved into a temporary
 directory and ``--iterations 50`` cut to 2. A command no rule shrinks runs as written. ``make
 test`` is not run here (it is this suite: CI's ``.ci/run`` runs it); the test checks that make
@@ -25,8 +25,12 @@ DOCS = ROOT / 'docs'
 #: README command (after the generic substitutions) -> the command the test runs ({tmp}: a temporary directory).
 SMALL = {
     'make demo': 'make demo DEMO_ARGS="--iterations 3 --output {tmp}/demo"',
-    'make experiment': ('make experiment EXPERIMENT_ARGS="--repetitions 1 --iterations 2 --methods AL '
-                        '--jobs 1 --no-record --output {tmp}/experiment"'),
+    "make experiment EXPERIMENT_ARGS='--repetitions 20'": (
+        'make experiment EXPERIMENT_ARGS="--repetitions 1 --iterations 2 --methods AL '
+        '--jobs 1 --no-record --output {tmp}/experiment"'),
+    "make experiment-paper EXPERIMENT_ARGS='--repetitions 20'": (
+        'make experiment-paper EXPERIMENT_ARGS="--repetitions 1 --iterations 2 --methods AL '
+        '--jobs 1 --no-record --output {tmp}/experiment-paper"'),
     'make docs': 'make docs SITE={tmp}/site',
 }
 #: Run by CI, not from inside the suite it starts.

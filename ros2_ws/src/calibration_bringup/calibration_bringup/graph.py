@@ -130,9 +130,19 @@ def ros_session(domain_id: int, qos_events: bool = True,
 
     if discovery not in ('LOCALHOST', 'OFF'):
         raise ValueError(f"discovery must be 'LOCALHOST' or 'OFF', got {discovery!r}")
+    # rcl reads the range from the environment at init; the process keeps what it had, so that
+    # processes started later (a test's nodes, a launcher) do not inherit OFF.
+    before = os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE')
     os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = discovery
     ctx = Context()
-    rclpy.init(context=ctx, domain_id=domain_id)
+    try:
+        rclpy.init(context=ctx, domain_id=domain_id)
+    finally:
+        if discovery == 'OFF':
+            if before is None:
+                del os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE']
+            else:
+                os.environ['ROS_AUTOMATIC_DISCOVERY_RANGE'] = before
     executor = (SingleThreadedExecutor if qos_events else WithoutQosEvents)(context=ctx)
     try:
         yield ctx, executor

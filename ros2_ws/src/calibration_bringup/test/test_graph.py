@@ -127,6 +127,8 @@ def test_a_session_without_discovery_hears_only_its_own_process() -> None:
         talker.wait()
     assert 'other' in heard['LOCALHOST'], 'control: the other process never reached a LOCALHOST session'
     assert heard['OFF'] == {'own'}, heard['OFF']
+    # Processes started afterwards must not inherit OFF (the session's nodes were created after init).
+    assert os.environ.get('ROS_AUTOMATIC_DISCOVERY_RANGE') == 'LOCALHOST'
 
 
 def test_a_session_refuses_an_unknown_discovery_range() -> None:

@@ -404,7 +404,8 @@ def _set_origin(text: str, joint: str, t: NDArray[np.float64]) -> str:
     return text[:m.end() + o.start()] + _origin_xml(t) + text[m.end() + o.end():]
 
 
-def calibrated_urdf(chain: UrdfChain, derived: DerivedDH, dh: ArrayLike, tool: ArrayLike | None = None) -> str:
+def calibrated_urdf(chain: UrdfChain, derived: DerivedDH, dh: ArrayLike, tool: ArrayLike | None = None,
+                    mesh_base: str | Path | None = None) -> str:
     """The chain's URDF with its joint origins corrected to the DH table ``dh``.
 
     Each revolute joint ``k``'s child link keeps its pose in the rotating DH frame
@@ -424,6 +425,12 @@ def calibrated_urdf(chain: UrdfChain, derived: DerivedDH, dh: ArrayLike, tool: A
         The table to write (e.g. the estimate).
     tool : array_like, shape (4, 4), optional
         Hand -> tip; ``derived.tool`` if omitted.
+    mesh_base : str or Path, optional
+        For a file written to another directory than the URDF's: relative mesh filenames become
+        absolute paths under this directory (the URDF's own), so PyBullet and Pinocchio still find
+        them, and so do ``package://NAME/...`` ones that name a file under it (PyBullet's reading,
+        pybullet_data's Panda); other ``package://`` and absolute ones are left. None: the filenames
+        are left as written.
 
     Returns
     -------
@@ -460,4 +467,16 @@ def calibrated_urdf(chain: UrdfChain, derived: DerivedDH, dh: ArrayLike, tool: A
                  f'    {_origin_xml(np.linalg.inv(pose) @ tip)}\n  </joint>\n')
         cut = _masked(text).rindex('</robot>')
         text = text[:cut] + extra + text[cut:]
+    if mesh_base is not None:
+        base_dir = Path(mesh_base).resolve()
+
+        def absolute(m: re.Match[str]) -> str:
+            name = m.group(3)
+            if name.startswith('package://') and (base_dir / name[len('package://'):]).is_file():
+                name = name[len('package://'):]      # PyBullet's reading of it (pybullet_data's Panda)
+            if '://' in name or Path(name).is_absolute():
+                return m.group(0)
+            return f'{m.group(1)}{m.group(2)}{base_dir / name}{m.group(2)}'
+
+        text = re.sub(r'(<mesh\b[^>]*?\bfilename\s*=\s*)(["\'])(.*?)\2', absolute, text)
     return text

@@ -258,3 +258,15 @@ def test_package_urls_resolve_to_python_packages() -> None:
     with pytest.raises(RobotDescriptionError, match='no_such_package'):
         robot_from_dict({'urdf': {'file': 'package://no_such_package/x.urdf', 'base_link': 'a', 'tip_link': 'b'}})
     assert os.path.isfile(model.urdf.path)
+
+
+def test_the_palm_is_drawn_on_the_flange_where_the_markers_are() -> None:
+    from body_schema.arm_visuals import model_visuals
+
+    mdh, urdf = load_robot('panda_mdh'), load_robot('panda')
+    assert np.allclose(mdh.tool[:3, 3], [0, 0, 0.107]) and np.allclose(urdf.tool, np.eye(4), atol=1e-12)
+    palm_mdh, palm_urdf = model_visuals(mdh)['hand'][0], model_visuals(urdf)['hand'][0]
+    q = np.radians([0, -10, 0, -110, 0, 170, 45])
+    assert np.allclose(mdh.forward_kinematics(q) @ palm_mdh.origin, urdf.forward_kinematics(q) @ palm_urdf.origin,
+                       atol=1e-9)
+    assert palm_mdh.size == palm_urdf.size

@@ -50,7 +50,7 @@ from .urdf import transform_to_xyz_rpy
 
 __all__ = ['UrdfDescriptionError', 'NearlyParallelAxesWarning', 'UrdfJoint', 'UrdfChain', 'DerivedDH',
            'PARALLEL_TOL', 'LENGTH_TOL', 'NEAR_PARALLEL_DEG', 'read_urdf', 'urdf_chain', 'derive_dh',
-           'calibrated_urdf']
+           'calibrated_urdf', 'write_calibrated_urdf']
 
 #: ``|z_prev x z|`` below which consecutive axes count as parallel (URDF files write pi/2 to
 #: about 12 digits, 5e-12 rad off).
@@ -480,3 +480,27 @@ def calibrated_urdf(chain: UrdfChain, derived: DerivedDH, dh: ArrayLike, tool: A
 
         text = re.sub(r'(<mesh\b[^>]*?\bfilename\s*=\s*)(["\'])(.*?)\2', absolute, text)
     return text
+
+
+def write_calibrated_urdf(model: 'ArmModel', dh: ArrayLike, path: str | Path) -> Path:  # noqa: F821 (import cycle)
+    """Write the URDF of a description read from one (``model.urdf``), corrected to ``dh``.
+
+    Mesh filenames relative to the source URDF are made absolute when ``path`` is in another
+    directory (:func:`calibrated_urdf`'s ``mesh_base``).
+
+    Raises
+    ------
+    UrdfDescriptionError
+        If the description was not read from a URDF.
+    """
+    if model.urdf is None:
+        raise UrdfDescriptionError(f'robot {model.name!r} was not read from a URDF (no urdf: key)')
+    chain = urdf_chain(model.urdf.path, model.urdf.base_link, model.urdf.tip_link)
+    with warnings.catch_warnings():
+        warnings.simplefilter('ignore', NearlyParallelAxesWarning)     # said when the description was loaded
+        derived = derive_dh(chain)
+    out = Path(path)
+    same_dir = out.parent.resolve() == model.urdf.path.parent
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(calibrated_urdf(chain, derived, dh, model.tool, mesh_base=None if same_dir else model.urdf.path.parent))
+    return out

@@ -25,15 +25,25 @@ WORKSPACE = BOTTOM | NODES | {'calibration_bringup'}
 BRINGUP_RUNTIME = ('recorder_node', 'player_node', 'mcap_writer', 'node_settings', 'tf_recording')
 
 
-def _imports(path: Path) -> set[str]:
-    """Workspace packages a module imports (absolute imports; relative ones stay in the package)."""
+#: Third-party modules body_schema may import in one module only (docs/architecture.md, section 1).
+BODY_SCHEMA_ONLY_IN = {'cv2': {'markers.py'}, 'pinocchio': {'collision.py'}, 'coal': {'collision.py'},
+                       'yourdfpy': {'urdf_model.py'}, 'xacro': {'urdf_model.py'}, 'rclpy': set()}
+
+
+def _all_imports(path: Path) -> set[str]:
+    """Top-level names of every module ``path`` imports, wherever the import stands."""
     out = set()
     for node in ast.walk(ast.parse(path.read_text(), str(path))):
         if isinstance(node, ast.Import):
             out |= {a.name.split('.')[0] for a in node.names}
         elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
             out.add(node.module.split('.')[0])
-    return out & WORKSPACE
+    return out
+
+
+def _imports(path: Path) -> set[str]:
+    """Workspace packages a module imports (absolute imports; relative ones stay in the package)."""
+    return _all_imports(path) & WORKSPACE
 
 
 def _modules(package: str) -> list[Path]:
@@ -53,6 +63,13 @@ def test_packages_import_only_the_layers_below(package: str) -> None:
     modules = _modules(package)
     assert modules, f'no modules found for {package}'
     bad = {str(p.relative_to(SRC)): sorted(_imports(p) - _allowed(package)) for p in modules}
+    assert not {k: v for k, v in bad.items() if v}
+
+
+def test_body_schema_keeps_its_heavy_imports_in_their_one_module() -> None:
+    bad = {str(p.relative_to(SRC)): sorted(m for m in _all_imports(p) & set(BODY_SCHEMA_ONLY_IN)
+                                           if p.name not in BODY_SCHEMA_ONLY_IN[m])
+           for p in _modules('body_schema')}
     assert not {k: v for k, v in bad.items() if v}
 
 

@@ -8,6 +8,8 @@ palm that grows to hold markers larger than it, e.g. a calibration plate on an i
 """
 from __future__ import annotations
 
+import dataclasses
+
 from collections.abc import Sequence
 
 import numpy as np
@@ -142,11 +144,20 @@ def arm_visuals(dh: ArrayLike, joint_names: Sequence[str], rgba: tuple = WHITE,
 
 def model_visuals(model: 'ArmModel', dh: ArrayLike | None = None, rgba: tuple = WHITE  # noqa: F821
                   ) -> dict[str, list[Visual]]:
-    """:func:`arm_visuals` of a description: its joints, and a palm grown to hold its markers."""
+    """:func:`arm_visuals` of a description: its joints, and a palm grown to hold its markers.
+
+    The palm is drawn on the flange, ``model.tool`` from the hand frame (a modified table's flange
+    row, a URDF's tip link off the last DH frame), where the markers are.
+    """
     dh = model.dh if dh is None else np.asarray(dh, dtype=float)
-    palm = palm_size(model.markers, quad_side(model.marker_dictionary, model.marker_side_length)) \
+    tool = np.asarray(model.tool, dtype=float)
+    on_flange = [dataclasses.replace(m, hand_T_marker=np.linalg.inv(tool) @ m.hand_T_marker) for m in model.markers]
+    palm = palm_size(on_flange, quad_side(model.marker_dictionary, model.marker_side_length)) \
         if model.markers else HAND_SIZE
-    return arm_visuals(dh, model.joint_names, rgba, palm)
+    visuals = arm_visuals(dh, model.joint_names, rgba, palm)
+    if not np.allclose(tool, np.eye(4), atol=1e-12):
+        visuals['hand'] = [dataclasses.replace(v, origin=tool @ v.origin) for v in visuals['hand']]
+    return visuals
 
 
 #: Extents [m] of the box drawn as a head behind the eyes (x, y, z in the left eye's optical frame).

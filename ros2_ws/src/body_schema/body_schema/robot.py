@@ -34,6 +34,8 @@ __all__ = [
     'Obstacle',
     'OBSTACLE_SHAPES',
     'CollisionSettings',
+    'UrdfSource',
+    'CONVENTIONS',
     'ArmModel',
     'load_robot',
     'robot_path',
@@ -176,6 +178,27 @@ class CollisionSettings:
 
 
 @dataclass(frozen=True)
+class UrdfSource:
+    """Where a description's arm comes from when it is read from a URDF (``urdf:`` in the YAML).
+
+    Attributes
+    ----------
+    path : Path
+        The ``.urdf`` or ``.xacro`` file (absolute).
+    base_link, tip_link : str
+        The chain's first and last links; markers are placed on ``tip_link``.
+    """
+
+    path: Path
+    base_link: str
+    tip_link: str
+
+
+#: DH conventions a description's ``joints:`` table may be written in (``convention:``).
+CONVENTIONS = ('standard', 'modified')
+
+
+@dataclass(frozen=True)
 class ArmModel:
     """A serial arm described by a standard DH table.
 
@@ -223,6 +246,18 @@ class ArmModel:
         :data:`body_schema.map_estimator.COVARIANCES`), where the errors need another than the
         estimator's default (heavy tails and an active selector: ``sandwich_hc3``); empty: the
         estimator's default.
+    tool : ndarray, shape (4, 4)
+        The hand (the frame after the last DH link, which every estimate and Jacobian ends at) to
+        the flange: the URDF's ``tip_link`` or a modified table's flange row; identity for a
+        standard table. Not estimated; the markers, given on the flange in the YAML, are stored
+        composed with it (``hand_T_marker = tool @ flange_T_marker``).
+    convention : {'standard', 'modified'}
+        How the description's table was written; ``dh`` is standard either way (a modified table
+        regrouped exactly, :mod:`body_schema.modified_dh`), :meth:`modified_table` writes it back.
+    mdh_first : tuple of 2 floats
+        A modified table's first row ``(a_0, alpha_0)`` [m, rad], which went into ``base``.
+    urdf : UrdfSource or None
+        The URDF the joints and the nominal kinematics come from (``urdf:`` in the YAML).
     """
 
     name: str
@@ -247,6 +282,10 @@ class ArmModel:
     noise_law: dict[str, float] = field(default_factory=dict, compare=False)
     noise_covariance: str = ''
     extra: dict[str, Any] = field(default_factory=dict, compare=False, repr=False)
+    tool: NDArray[np.float64] = field(default_factory=lambda: np.eye(4), compare=False, repr=False)
+    convention: str = 'standard'
+    mdh_first: tuple[float, float] = (0.0, 0.0)
+    urdf: UrdfSource | None = None
 
     @property
     def n_joints(self) -> int:
@@ -265,6 +304,33 @@ class ArmModel:
     def forward_kinematics(self, q: ArrayLike) -> NDArray[np.float64]:
         """Hand pose(s) in the root frame: (4, 4) for q of shape (L,), (N, 4, 4) for (N, L)."""
         return kinematics.forward_kinematics(self.base, self.dh, q)
+
+    def flange_pose(self, q: ArrayLike) -> NDArray[np.float64]:
+        """Flange (URDF ``tip_link``) pose(s) in the root frame: ``forward_kinematics(q) @ tool``."""
+        return self.forward_kinematics(q) @ self.tool
+
+    def modified_table(self, dh: ArrayLike | None = None) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """A standard table (default: this model's) written back as the description's modified one.
+
+        Returns
+        -------
+        mdh : ndarray, shape (L, 4)
+            ``[a_{i-1}, d_i, alpha_{i-1}, offset_i]`` per joint [m, m, rad, rad].
+        flange : ndarray, shape (4,)
+            ``[a, d, alpha, theta]`` of the fixed flange row.
+
+        Raises
+        ------
+        RobotDescriptionError
+            If the description is not written in the modified convention.
+        """
+        from .modified_dh import standard_to_modified
+
+        if self.convention != 'modified':
+            raise RobotDescriptionError(f'robot {self.name!r}: convention is {self.convention!r}, not modified')
+        table = self.dh if dh is None else np.asarray(dh, dtype=float).reshape(self.dh.shape)
+        theta = float(np.arctan2(self.tool[1, 0], self.tool[0, 0]))
+        return standard_to_modified(table, self.mdh_first, (float(self.tool[2, 3]), theta))
 
     def jacobian_dh(self, q: ArrayLike) -> NDArray[np.float64]:
         """Pose Jacobian w.r.t. the DH parameters: (6, 4 L) or (N, 6, 4 L)."""
@@ -428,30 +494,18 @@ def robot_from_dict(data: dict[str, Any], source: str = '<dict>') -> ArmModel:
         raise RobotDescriptionError(f"{where}angle_unit: must be 'deg' or 'rad', got {unit!r}")
     scale = np.pi / 180.0 if unit == 'deg' else 1.0
 
-    h0 = _array(data, 'H0', (4, 4), where)
-    _homogeneous(h0, where + 'H0')
-    torso = _table(data.get('torso', []) or np.zeros((0, 4)), None, where + 'torso', scale)
-
-    joints = data.get('joints')
-    if not isinstance(joints, list) or not joints:
-        raise RobotDescriptionError(f'{where}joints: must be a non-empty list')
-    names, rows, lims = [], [], []
-    for i, j in enumerate(joints):
-        if not isinstance(j, dict) or 'name' not in j:
-            raise RobotDescriptionError(f'{where}joints[{i}]: needs name, dh and limits')
-        jw = f"{where}joints[{i}] ({j['name']}): "
-        rows.append(_array(j, 'dh', (4,), jw))
-        lims.append(_array(j, 'limits', (2,), jw))
-        names.append(str(j['name']))
+    convention = data.get('convention', 'standard')
+    if convention not in CONVENTIONS:
+        raise RobotDescriptionError(f'{where}convention: must be one of {list(CONVENTIONS)}, got {convention!r}')
+    arm = _urdf_arm(data, where, source) if 'urdf' in data else _table_arm(data, where, scale, convention)
+    names, dh, limits, h0, torso, tool = arm['names'], arm['dh'], arm['limits'], arm['h0'], arm['torso'], arm['tool']
+    n = len(names)
     if len(set(names)) != len(names):
         raise RobotDescriptionError(f'{where}joints: duplicate joint names {names}')
-    n = len(names)
-    dh = _table(rows, n, where + 'joints[*].dh', scale)
-    limits = np.array(lims) * scale
     bad = np.nonzero(limits[:, 0] >= limits[:, 1])[0]
     if bad.size:
         raise RobotDescriptionError(f'{where}joints[{bad[0]}] ({names[bad[0]]}).limits: '
-                                    f'min must be below max, got {np.array(lims)[bad[0]].tolist()}')
+                                    f'min must be below max, got {np.degrees(limits[bad[0]]).tolist()} deg')
     if np.any(np.abs(limits) > 2 * np.pi + 1e-9):
         raise RobotDescriptionError(f'{where}joints[*].limits: beyond +-360 deg; check angle_unit')
 
@@ -485,6 +539,8 @@ def robot_from_dict(data: dict[str, Any], source: str = '<dict>') -> ArmModel:
     dictionary, side, markers = 'DICT_4X4_50', 0.03, ()
     if 'hand_markers' in data:
         dictionary, side, markers = _markers(data['hand_markers'], where + 'hand_markers.', scale)
+        # Given on the flange (the URDF's tip link, a modified table's flange row); kept on the hand.
+        markers = tuple(dataclasses.replace(m, hand_T_marker=tool @ m.hand_T_marker) for m in markers)
 
     noise_law, noise_covariance = (_noise_law(data['noise_model'], where + 'noise_model')
                                    if 'noise_model' in data else ({}, ''))
@@ -506,7 +562,7 @@ def robot_from_dict(data: dict[str, Any], source: str = '<dict>') -> ArmModel:
 
     known = {'name', 'root_frame', 'angle_unit', 'H0', 'torso', 'joints', 'calibration_box',
              'eyes', 'camera', 'hand_markers', 'fixed_cameras', 'scenery', 'noise_model',
-             'obstacles', 'collision', 'exports'}
+             'obstacles', 'collision', 'exports', 'urdf', 'convention', 'flange'}
     return ArmModel(
         name=str(data.get('name', Path(source).stem)),
         joint_names=tuple(names),
@@ -514,7 +570,7 @@ def robot_from_dict(data: dict[str, Any], source: str = '<dict>') -> ArmModel:
         base=_fixed_chain(h0, torso),
         limits=limits,
         calibration_box=box,
-        root_frame=str(data.get('root_frame', 'root_link')),
+        root_frame=str(data.get('root_frame', arm['root'])),
         eyes=eyes,
         camera=camera,
         marker_dictionary=dictionary,
@@ -530,7 +586,103 @@ def robot_from_dict(data: dict[str, Any], source: str = '<dict>') -> ArmModel:
         noise_law=noise_law,
         noise_covariance=noise_covariance,
         extra={k: v for k, v in data.items() if k not in known},
+        tool=tool,
+        convention=convention,
+        mdh_first=arm['first'],
+        urdf=arm['urdf'],
     )
+
+
+def resolve_file(name: str, relative_to: Path, where: str = 'file') -> Path:
+    """A file a description names: absolute, relative to the description, or ``package://PKG/REL``.
+
+    ``package://`` looks in ``<prefix>/share/PKG`` for each prefix of ``AMENT_PREFIX_PATH`` (a ROS
+    package, as ROS resolves it), then in the directory of an importable Python package ``PKG``
+    (``package://pybullet_data/franka_panda/panda.urdf``).
+
+    Raises
+    ------
+    RobotDescriptionError
+        If a ``package://`` name's package is not found.
+    """
+    import os
+
+    if name.startswith('package://'):
+        pkg, _, rest = name[len('package://'):].partition('/')
+        for prefix in filter(None, os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep)):
+            share = Path(prefix) / 'share' / pkg
+            if share.is_dir():
+                return (share / rest).resolve()
+        import importlib.util
+
+        spec = importlib.util.find_spec(pkg) if pkg.isidentifier() else None
+        if spec is None or not spec.submodule_search_locations:
+            raise RobotDescriptionError(f'{where}: no ROS package (AMENT_PREFIX_PATH) or Python package {pkg!r} '
+                                        f'for {name!r}')
+        return (Path(list(spec.submodule_search_locations)[0]) / rest).resolve()
+    path = Path(name).expanduser()
+    return (path if path.is_absolute() else relative_to / path).resolve()
+
+
+def _table_arm(data: dict[str, Any], where: str, scale: float, convention: str) -> dict[str, Any]:
+    """The arm of a description written as a table: ``H0``, ``torso``, ``joints`` (and ``flange``)."""
+    h0 = _array(data, 'H0', (4, 4), where)
+    _homogeneous(h0, where + 'H0')
+    torso = _table(data.get('torso', []) or np.zeros((0, 4)), None, where + 'torso', scale)
+    joints = data.get('joints')
+    if not isinstance(joints, list) or not joints:
+        raise RobotDescriptionError(f'{where}joints: must be a non-empty list')
+    names, rows, lims = [], [], []
+    for i, j in enumerate(joints):
+        if not isinstance(j, dict) or 'name' not in j:
+            raise RobotDescriptionError(f'{where}joints[{i}]: needs name, dh and limits')
+        jw = f"{where}joints[{i}] ({j['name']}): "
+        rows.append(_array(j, 'dh', (4,), jw))
+        lims.append(_array(j, 'limits', (2,), jw))
+        names.append(str(j['name']))
+    dh = _table(rows, len(names), where + 'joints[*].dh', scale)
+    tool, first = np.eye(4), (0.0, 0.0)
+    if convention == 'modified':
+        from .modified_dh import modified_to_standard
+
+        if torso.shape[0]:
+            raise RobotDescriptionError(f'{where}torso: not with convention: modified (put the fixed part in H0)')
+        flange = np.zeros(4)
+        if 'flange' in data:
+            flange = _table([data['flange']], 1, where + 'flange', scale)[0]
+        first = (float(dh[0, 0]), float(dh[0, 2]))
+        dh, pre, tool = modified_to_standard(dh, flange)
+        h0 = h0 @ pre                     # Rx(alpha_0) Tx(a_0) before the first joint
+    elif 'flange' in data:
+        raise RobotDescriptionError(f'{where}flange: only with convention: modified (a standard table ends at '
+                                    'the flange)')
+    return {'names': names, 'dh': dh, 'limits': np.array(lims) * scale, 'h0': h0, 'torso': torso, 'tool': tool,
+            'first': first, 'urdf': None, 'root': 'root_link'}
+
+
+def _urdf_arm(data: dict[str, Any], where: str, source: str) -> dict[str, Any]:
+    """The arm of a description read from a URDF (``urdf: {file, base_link, tip_link}``)."""
+    from .urdf_model import derive_dh, urdf_chain    # here: yourdfpy is loaded for URDF descriptions only
+
+    u = data['urdf']
+    if not isinstance(u, dict) or not all(isinstance(u.get(k), str) and u.get(k) for k in ('file', 'base_link', 'tip_link')):
+        raise RobotDescriptionError(f'{where}urdf: must be a mapping with file, base_link and tip_link, got {u!r}')
+    unknown = sorted(set(u) - {'file', 'base_link', 'tip_link'})
+    if unknown:
+        raise RobotDescriptionError(f'{where}urdf: unknown keys {unknown}; expected file, base_link, tip_link')
+    clash = sorted(k for k in ('joints', 'torso', 'flange') if k in data)
+    if clash or data.get('convention', 'standard') != 'standard':
+        raise RobotDescriptionError(f'{where}urdf: the URDF gives the joints; remove {clash or ["convention"]}')
+    path = resolve_file(u['file'], Path(source).parent if source != '<dict>' else Path.cwd(), where + 'urdf.file')
+    chain = urdf_chain(path.resolve(), u['base_link'], u['tip_link'])
+    derived = derive_dh(chain)
+    h0 = np.eye(4)
+    if 'H0' in data:                      # root frame -> base_link
+        h0 = _array(data, 'H0', (4, 4), where)
+        _homogeneous(h0, where + 'H0')
+    return {'names': list(chain.joint_names), 'dh': derived.dh, 'limits': chain.limits, 'h0': h0 @ derived.base,
+            'torso': np.zeros((0, 4)), 'tool': derived.tool, 'first': (0.0, 0.0),
+            'urdf': UrdfSource(path.resolve(), u['base_link'], u['tip_link']), 'root': u['base_link']}
 
 
 #: The keys a description's ``noise_model:`` block may set (units as in PoseDependentNoise).

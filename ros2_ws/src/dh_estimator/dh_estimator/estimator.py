@@ -37,7 +37,7 @@ from body_schema import identifiability
 from body_schema.map_estimator import COVARIANCES, LOSSES, MapEstimator, MapSettings
 from body_schema.urdf import FixedLink, model_urdf, transform_to_xyz_rpy
 from calibration_interfaces.contract import optical_frame
-from calibration_interfaces.dh_file import write_dh_file
+from calibration_interfaces.dh_file import modified_section, write_dh_file
 from calibration_interfaces.outcome import Outcome
 from calibration_interfaces.parameters import setting
 from calibration_interfaces.robot_formats import write_exports
@@ -394,9 +394,12 @@ class OnlineEstimator:
         return text
 
     def export(self, directory: str | Path, stem: str = 'calibrated') -> tuple[Path, Path]:
-        """Write ``<stem>_dh.yaml`` (table with one-sigma, :mod:`calibration_interfaces.dh_file`) and
-        ``<stem>.urdf``, and the formats of the description's ``exports``
-        (:func:`calibration_interfaces.robot_formats.write_exports`); return the first two paths."""
+        """Write ``<stem>_dh.yaml`` (table with one-sigma, :mod:`calibration_interfaces.dh_file`; with a
+        ``modified_dh`` section for a description in Craig's convention) and ``<stem>.urdf``, the formats
+        of the description's ``exports`` (:func:`calibration_interfaces.robot_formats.write_exports`)
+        and, for a description read from a URDF, that URDF with its joint origins corrected
+        (``<stem>_<urdf name>.urdf``, :func:`body_schema.urdf_model.write_calibrated_urdf`); return the
+        first two paths."""
         directory = Path(directory)
         n_dh = self.model.n_params
         sigma_all = np.sqrt(np.diag(self.P))
@@ -408,6 +411,9 @@ class OnlineEstimator:
             if self.extrinsics is not None:
                 ident['held'] += ("; what the camera / marker absorb at the description's values")
         extra: dict[str, object] = {'updates': self.counters, 'identifiability': ident}
+        if self.model.convention == 'modified':      # the estimate in the description's own convention
+            mdh, flange = self.model.modified_table(self.dh)
+            extra['modified_dh'] = modified_section(mdh, flange, self.model.joint_names, sigma)
         poses = self.extrinsic_poses()
         if poses is not None:
             extra.update(self._extrinsics_export(poses, sigma_all[n_dh:]))
@@ -420,6 +426,11 @@ class OnlineEstimator:
         urdf_path.write_text(model_urdf(self.calibrated_model(), extra_links=self.frame_links()))
         # The robot stack's own formats the description asks for (UR kinematics YAML, iKin .ini).
         write_exports(directory, self.model, self.dh, stem)
+        if self.model.urdf is not None:              # the description's own URDF, joint origins corrected
+            from body_schema.urdf_model import write_calibrated_urdf
+
+            write_calibrated_urdf(self.model, self.dh,
+                                  directory / f'{stem}_{self.model.urdf.path.name.split(".")[0]}.urdf')
         return yaml_path, urdf_path
 
     def frame_links(self) -> tuple[FixedLink, ...]:

@@ -267,3 +267,44 @@ def test_calibrated_urdf_without_extrinsics_has_the_description_frames(arm, tmp_
 def test_extrinsic_priors_name_the_bad_value(kw, words):
     with pytest.raises(ValueError, match=words):
         EstimatorSettings(**kw)
+
+
+# --------------------------------------------------------------------------------------------
+# Descriptions from a URDF and in Craig's modified convention (Panda)
+
+def test_export_of_a_modified_description_writes_the_estimate_back_as_a_modified_table(tmp_path):
+    from body_schema.modified_dh import modified_forward_kinematics
+    from calibration_interfaces.dh_file import parse_dh, read_dh_file
+
+    panda = body_schema.load_robot('panda_mdh')
+    est = OnlineEstimator(panda, sampling.perturb_dh(panda.dh, 3), sampling.initial_covariance(7), EstimatorSettings())
+    y, _ = est.export(tmp_path)
+    doc = yaml.safe_load(y.read_text())
+    section = doc['modified_dh']
+    rows = np.array([j['dh'] for j in section['joints']])
+    rows[:, 2:] = np.radians(rows[:, 2:])
+    flange = np.array(section['flange'])
+    flange[2:] = np.radians(flange[2:])
+    q = np.random.default_rng(0).uniform(panda.limits[:, 0], panda.limits[:, 1], (20, 7))
+    # the written modified table moves the flange as the estimate does
+    np.testing.assert_allclose([panda.base @ modified_forward_kinematics(rows, qq, flange) for qq in q],
+                               panda.with_dh(est.dh).flange_pose(q), atol=1e-9)
+    # and it reads back as the estimate's standard table; the main table is the standard one
+    np.testing.assert_allclose(parse_dh(section).dh, est.dh, atol=1e-12)
+    np.testing.assert_allclose(read_dh_file(y, 7).dh, est.dh, atol=1e-9)
+    assert section['joints'][1]['sigma'][0] == pytest.approx(np.sqrt(est.P[0, 0]))     # a_0 of standard row 0
+
+
+def test_export_of_a_urdf_description_writes_its_urdf_corrected(tmp_path):
+    from body_schema.urdf_model import urdf_chain
+    from calibration_interfaces.dh_file import read_dh_file
+
+    panda = body_schema.load_robot('panda')
+    est = OnlineEstimator(panda, sampling.perturb_dh(panda.dh, 3), sampling.initial_covariance(7), EstimatorSettings())
+    est.export(tmp_path)
+    chain = urdf_chain(tmp_path / 'calibrated_panda.urdf', 'panda_link0', 'panda_link8')
+    q = np.random.default_rng(0).uniform(panda.limits[:, 0], panda.limits[:, 1], (20, 7))
+    np.testing.assert_allclose([chain.tip_pose(qq) for qq in q], panda.with_dh(est.dh).flange_pose(q), atol=1e-9)
+    # a URDF description is a DH file too (the simulator's true_dh_file, the estimator's initial guess)
+    np.testing.assert_allclose(read_dh_file(body_schema.robot.robot_path('panda'), 7).dh, panda.dh)
+    assert 'modified_dh' not in yaml.safe_load((tmp_path / 'calibrated_dh.yaml').read_text())

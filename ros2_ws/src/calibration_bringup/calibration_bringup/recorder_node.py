@@ -3,12 +3,13 @@
 The file opens in ``ros2 bag play FILE.mcap``, the ``mcap`` and ``rosbags`` libraries and
 Foxglove (format: :mod:`calibration_bringup.mcap_writer`). Messages are taken raw (the CDR bytes
 as received) and written with their receive time as log time and the publisher's source
-timestamp as publish time. With ``use_sim_time`` (as ``ros2 bag record --use-sim-time``; the
-launcher's ``config/recorder.yaml`` sets it) the receive time is read on the simulation clock, so
-log times and ``header.stamp`` agree (log time = the latest ``/clock`` received, plus a nanosecond
-per message already logged in that tick so that log-time order is arrival order; a ``/clock``
-message is logged at its own time). The
-file's ``recording`` metadata says which clock it is (``log_time: sim`` or ``system``).
+timestamp as publish time (metadata ``publish_time: source``: sorted by it, a bag's topics come
+in the order they were published, whatever order the recorder took them in). With
+``use_sim_time`` (as ``ros2 bag record --use-sim-time``; the launcher's ``config/recorder.yaml``
+sets it) the receive time is read on the simulation clock, so log times and ``header.stamp``
+agree (log time = the latest ``/clock`` received, plus a nanosecond per message already logged
+in that tick so that log-time order is arrival order; a ``/clock`` message is logged at its own
+time). The file's ``recording`` metadata says which clock it is (``log_time: sim`` or ``system``).
 
 With ``record_tf`` the recorder also writes ``/tf`` and ``/tf_static`` (tf2_msgs/msg/TFMessage)
 computed from what it records, as a robot state publisher would publish them
@@ -88,7 +89,7 @@ from std_msgs.msg import Float64MultiArray
 
 from body_schema.robot import load_robot
 
-from calibration_interfaces.contract import BY_NAME, HISTORY, IMAGE_TOPICS, ContractTopic
+from calibration_interfaces.contract import BY_NAME, HISTORY, IMAGE_TOPICS, PUBLISH_TIME_SOURCE, ContractTopic
 from calibration_interfaces.mcap_reader import QosOffer
 from calibration_interfaces.messages import MessageFormatError, msg_to_table, pose_msg_to_matrix
 from calibration_interfaces.node_util import WarnOnce, declare_settings, message_class, qos_profile, spin_node
@@ -169,7 +170,8 @@ class RecorderNode(Node):
         self._clock_ns = 0
         self._last_log_ns = -1
         self._writer.add_metadata('recording', {'log_time': 'sim' if self._sim_time else 'system',
-                                                'tf': 'derived' if s.record_tf else 'none'})
+                                                'tf': 'derived' if s.record_tf else 'none',
+                                                'publish_time': PUBLISH_TIME_SOURCE})
         self._tf = TfBook(load_robot(s.robot)) if s.record_tf else None
         for topic in self.wanted:
             if topic in BY_NAME:
@@ -272,13 +274,16 @@ class RecorderNode(Node):
             if topic == '/clock':
                 self._clock_ns = _stamp_ns(deserialize_message(data, ClockMsg).clock)
             now = self._clock_ns if '/clock' in self.wanted else self.get_clock().now().nanoseconds
-            # One nanosecond apart within a clock tick: log-time order stays arrival order, which
-            # the offline evaluation replays (a progress record after the update it reports).
+            # One nanosecond apart within a clock tick: log-time order stays arrival order (the
+            # player replays it; the offline evaluation replays publication order, see below).
             log_time = self._last_log_ns = max(now, self._last_log_ns + 1)
         else:
             # rmw's reception time when it has one (Fast DDS does), else now; both are system time.
             log_time = info.get('received_timestamp') or time.time_ns()
-        self._writer.write(topic, data, log_time, info.get('source_timestamp') or log_time,
+        # Publish time on the graph's wall clock always (metadata publish_time: source): the
+        # source timestamp, else the receive time, the nearest bound a receiver has.
+        publish_time = info.get('source_timestamp') or info.get('received_timestamp') or time.time_ns()
+        self._writer.write(topic, data, log_time, publish_time,
                            info.get('publication_sequence_number') or 0)
         if topic in BY_NAME and BY_NAME[topic].qos is HISTORY:
             self._writer.flush()            # a run's record is on disk before the next message

@@ -56,7 +56,11 @@ flush_period : float
 discovery_period : float
     Seconds between checks for new publishers.
 queue_depth : int
-    Subscription queue depth (keep last).
+    Subscription queue depth (keep last) of best-effort topics (the images).
+reliable_queue_depth : int
+    Subscription queue depth (keep last) of reliable topics (default
+    :data:`calibration_interfaces.contract.RECORD_DEPTH`): the executor takes one message per topic
+    per wait, so the fast streams back up while it is busy, and what overflows is lost.
 record_tf : bool
     Write ``/tf`` and ``/tf_static`` derived from the joint states, the real and estimated DH
     tables and the camera poses.
@@ -117,11 +121,15 @@ def qos_offer(profile: QoSProfile) -> QosOffer:
         avoid_ros_namespace_conventions=bool(profile.avoid_ros_namespace_conventions))
 
 
-def request_qos(offers: list[QoSProfile], depth: int) -> QoSProfile:
-    """rosbag2's subscription QoS for a set of publishers (compatible with all of them)."""
+def request_qos(offers: list[QoSProfile], depth: int, reliable_depth: int | None = None) -> QoSProfile:
+    """rosbag2's subscription QoS for a set of publishers (compatible with all of them).
+
+    ``depth`` is the queue of a best-effort subscription, ``reliable_depth`` (default ``depth``)
+    that of a reliable one.
+    """
     reliable = bool(offers) and all(o.reliability == ReliabilityPolicy.RELIABLE for o in offers)
     latched = bool(offers) and all(o.durability == DurabilityPolicy.TRANSIENT_LOCAL for o in offers)
-    return QoSProfile(depth=depth,
+    return QoSProfile(depth=reliable_depth if reliable and reliable_depth is not None else depth,
                       reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
                       durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
 
@@ -160,6 +168,7 @@ class RecorderNode(Node):
         cameras = load_robot(s.robot).camera_names
         self.wanted = [t for t in self.wanted if not (t.startswith('/camera/') and t.split('/')[2] not in cameras)]
         self._depth = s.queue_depth
+        self._reliable_depth = s.reliable_queue_depth
         self._writer = McapBagWriter(self.output, compression=s.compression, chunk_size=s.chunk_size)
         self.counts = self._writer.counts
         self._subs_by_topic: dict[str, Any] = {}
@@ -199,7 +208,7 @@ class RecorderNode(Node):
             cls = message_class(topic.type)
         except ImportError:
             return                              # discovery will report it
-        qos = qos_profile(topic.qos, depth=self._depth)
+        qos = qos_profile(topic.qos, depth=self._depth if topic.sensor else self._reliable_depth)
         sub = self.create_subscription(cls, topic.name, functools.partial(self._on_message, topic.name), qos, raw=True)
         self._early[topic.name] = (sub, qos)
 
@@ -257,7 +266,7 @@ class RecorderNode(Node):
             self._subs_by_topic[topic] = None   # do not retry every period
             return
         offers = self._add_channel(topic, type_name, endpoints)
-        qos = request_qos(offers, self._depth)
+        qos = request_qos(offers, self._depth, self._reliable_depth)
         self._subs_by_topic[topic] = self.create_subscription(
             cls, topic, functools.partial(self._on_message, topic), qos, raw=True)
         self.get_logger().info(f'recording {topic} ({type_name}, '

@@ -22,8 +22,11 @@ transient local if all of them are (so latched facts published before the record
 recorded), best effort otherwise. Types come from discovery; the publishers' QoS is stored in
 the file so that the player offers it again.
 
-On SIGINT or SIGTERM (rclpy's handlers shut the context down), on ``destroy_node`` and on
-``close()`` the file is finished (summary, indexes). After a SIGKILL it is readable up to its last
+On SIGINT or SIGTERM the recorder first takes what its queues still hold (until nothing arrived
+for ``DRAIN_QUIET_S``, at most ``DRAIN_DEADLINE_S``; a second signal cuts it short): the launcher
+stops it after every other node, and a recorder behind on the joint states held the last seconds
+of them, which rclpy's handlers, shutting the context down at once, threw away. On
+``destroy_node`` and on ``close()`` the file is finished (summary, indexes). After a SIGKILL it is readable up to its last
 complete chunk; ``flush_period`` bounds how much is lost, and a record of the run (a topic with
 the contract's HISTORY QoS: the estimator's verdicts, the selector's progress) is flushed to the
 file as it arrives, with everything before it, so a SIGKILL never loses an accepted observation
@@ -76,16 +79,21 @@ from __future__ import annotations
 from calibration_interfaces import startup  # noqa: F401,I001
 
 import functools
+import signal
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
+
+import rclpy
 
 from rclpy.logging import get_logger
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile,
                        ReliabilityPolicy)
 from rclpy.serialization import deserialize_message
+from rclpy.signals import uninstall_signal_handlers
 from geometry_msgs.msg import PoseStamped
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState
@@ -105,6 +113,12 @@ from .tf_recording import TF_STATIC_TOPIC, TF_TOPIC, TF_TYPE, TfBook, TfRecord
 #: What a tf2 broadcaster offers: /tf a reliable stream, /tf_static latched (depth 1).
 _TF_QOS = {TF_TOPIC: QosOffer('keep_last', 100, 'reliable', 'volatile'),
            TF_STATIC_TOPIC: QosOffer('keep_last', 1, 'reliable', 'transient_local')}
+
+
+#: After SIGINT / SIGTERM: the queues are drained once nothing arrived for this long [s] ...
+DRAIN_QUIET_S = 0.25
+#: ... or after this long at most [s] (the launcher kills a node 15 s after its SIGINT).
+DRAIN_DEADLINE_S = 10.0
 
 
 def qos_offer(profile: QoSProfile) -> QosOffer:
@@ -319,6 +333,35 @@ class RecorderNode(Node):
             self._warn(topic, f'no TF from {topic}: {exc}')
         return []
 
+    def drain(self, spin_once: Callable[[float], None], quiet: float = DRAIN_QUIET_S,
+              deadline: float = DRAIN_DEADLINE_S, cut: Callable[[], bool] = lambda: False) -> int:
+        """Record what the subscriptions still hold; returns how many messages that wrote.
+
+        Parameters
+        ----------
+        spin_once : callable
+            ``spin_once(timeout)``: one turn of the executor this node is spun by.
+        quiet : float
+            Drained once nothing was written for ``quiet`` seconds.
+        deadline : float
+            At most this long [s].
+        cut : callable
+            Stops the drain when it returns true (a second signal).
+        """
+        start = last = time.monotonic()
+        before = sum(self.counts.values())
+        written = 0
+        while self.context.ok() and not self._closed and not cut():
+            spin_once(quiet)
+            now, total = time.monotonic(), sum(self.counts.values()) - before
+            if total > written:
+                written, last = total, now
+            elif now - last >= quiet:       # quiet since the last message (a timer's turn aside)
+                break
+            if now - start >= deadline:
+                break
+        return written
+
     def close(self) -> None:
         """Stop recording and finish the file (idempotent)."""
         if self._closed:
@@ -343,10 +386,22 @@ class RecorderNode(Node):
         super().destroy_node()
 
 
+def _run_then_drain(node: RecorderNode) -> None:
+    """Spin until SIGINT or SIGTERM, then :meth:`RecorderNode.drain` (the context still up)."""
+    signals: list[int] = []
+    uninstall_signal_handlers()         # rclpy's would shut the context down with messages queued
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda s, _frame: signals.append(s))
+    while rclpy.ok(context=node.context) and not signals:
+        rclpy.spin_once(node, timeout_sec=0.1)
+    t0 = time.monotonic()
+    n = node.drain(lambda timeout: rclpy.spin_once(node, timeout_sec=timeout), cut=lambda: len(signals) > 1)
+    node.get_logger().info(f'stopping: {n} queued messages recorded in {time.monotonic() - t0:.2f} s')
+
+
 def main(args: list[str] | None = None) -> None:
-    # rclpy installs SIGINT and SIGTERM handlers that shut the context down: spin() then raises
-    # ExternalShutdownException (or KeyboardInterrupt) and destroy_node() finishes the file.
-    spin_node(RecorderNode, args)
+    # SIGINT / SIGTERM end the spin, the queues are drained, destroy_node() finishes the file.
+    spin_node(RecorderNode, args, _run_then_drain)
 
 
 if __name__ == '__main__':

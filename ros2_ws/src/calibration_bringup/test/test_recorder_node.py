@@ -122,6 +122,28 @@ def test_a_stalled_recorder_loses_no_joint_state_and_keeps_their_publication_ord
     assert hand_after == list(range(5, n, 10))
 
 
+def test_a_stopped_recorder_first_records_what_its_queues_hold(ros: Any, tmp_path: Path) -> None:
+    """What a busy recorder holds when it is told to stop is recorded before the file is finished.
+
+    On main SIGINT shut the context down at once: a launched run's recorder, seconds behind on
+    the joint states, closed its bag without the last 3 s of them (67 hand poses re-run without
+    joint states).
+    """
+    probe = ros.node('probe')
+    js = probe.create_publisher(JointState, '/joint_states', qos_profile('/joint_states'))
+    path = tmp_path / 'drained.mcap'
+    rec = _recorder(ros, path, flush_period=0.05)       # a timer turn on the way must not end the drain
+    ros.spin_until(lambda: js.get_subscription_count(), 15.0, 'the recorder subscribing')
+    for i in range(200):
+        js.publish(_joint_state(i))
+    t0 = time.monotonic()
+    assert rec.drain(lambda timeout: ros.executor.spin_once(timeout_sec=timeout)) == 200
+    assert time.monotonic() - t0 < 5.0
+    assert rec.drain(lambda timeout: ros.executor.spin_once(timeout_sec=timeout)) == 0   # drained
+    rec.close()
+    assert [m.header.stamp.sec for _, _, m in bag.read_messages(path, ['/joint_states'])] == list(range(200))
+
+
 def test_late_topics_extra_topics_and_excluded_images(ros: Any, tmp_path: Path) -> None:
     path = tmp_path / 'late.mcap'
     rec = _recorder(ros, path, topics=['/joint_states', '/camera/left/image_raw', 'extra'],

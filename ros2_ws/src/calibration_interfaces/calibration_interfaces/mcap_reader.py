@@ -24,6 +24,7 @@ The bag player, the report and the offline evaluation all read bags through this
 """
 from __future__ import annotations
 
+import heapq
 import os
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
@@ -370,8 +371,25 @@ def _iter(path: Path, topics: Iterable[str] | None,
                 yield scan.schemas.get(ch.schema_id), ch, msg
 
 
+#: Orders the readers read in: ``log`` (the recorder's arrival order; file order for a killed
+#: recording) or ``publication`` (by publish time; each topic in log order, merged).
+ORDERS: tuple[str, ...] = ('log', 'publication')
+
+
+def _iter_in(path: Path, topics: Iterable[str] | None, start_ns: int | None,
+             order: str) -> Iterator[tuple[Schema | None, Channel, Message]]:
+    """:func:`_iter` in ``order``: by publication, one reader per topic, merged on publish time
+    (memory: one message per topic, images included)."""
+    if order not in ORDERS:
+        raise ValueError(f'order must be one of {list(ORDERS)}, got {order!r}')
+    if order == 'log':
+        return _iter(path, topics, start_ns)
+    names = sorted(summary(path).topics) if topics is None else sorted(set(topics))
+    return heapq.merge(*(_iter(path, [t], start_ns) for t in names), key=lambda r: r[2].publish_time)
+
+
 def read_raw(path: str | os.PathLike[str], topics: Iterable[str] | None = None,
-             start_ns: int | None = None) -> Iterator[RawMessage]:
+             start_ns: int | None = None, order: str = 'log') -> Iterator[RawMessage]:
     """Recorded messages as CDR bytes, in log-time order (file order for a killed recording).
 
     Parameters
@@ -382,15 +400,21 @@ def read_raw(path: str | os.PathLike[str], topics: Iterable[str] | None = None,
         Only these topics (default: all).
     start_ns : int, optional
         Only messages logged at or after this time [ns].
+    order : {'log', 'publication'}
+        ``log``: as the recorder logged them (its arrival order). ``publication``: by publish
+        time, the order the publishers sent them in when the bag's publish times are their
+        source timestamps (:func:`recording_metadata` says ``publish_time: source``); a recorder
+        that fell behind on one topic logged the others ahead of it. Messages of one topic keep
+        their order either way.
+
+    Raises
+    ------
+    ValueError
+        If ``order`` is not one of :data:`ORDERS`.
     """
-    for schema, ch, msg in _iter(Path(path), topics, start_ns):
+    for schema, ch, msg in _iter_in(Path(path), topics, start_ns, order):
         yield RawMessage(ch.topic, schema.name if schema else '', msg.log_time, msg.publish_time,
                          msg.data)
-
-
-#: Orders :func:`read_messages` reads in: ``log`` (the recorder's arrival order; file order for a
-#: killed recording) or ``publication`` (by publish time, ties in log order).
-ORDERS: tuple[str, ...] = ('log', 'publication')
 
 
 def read_messages(path: str | os.PathLike[str], topics: Iterable[str] | None = None,
@@ -402,14 +426,8 @@ def read_messages(path: str | os.PathLike[str], topics: Iterable[str] | None = N
 
     Parameters
     ----------
-    path, topics
+    path, topics, order
         As :func:`read_raw`.
-    order : {'log', 'publication'}
-        ``log``: as the recorder logged them (its arrival order). ``publication``: by publish
-        time, the order the publishers sent them in when the bag's publish times are their
-        source timestamps (:func:`recording_metadata` says ``publish_time: source``); a recorder
-        that fell behind on one topic logged the others ahead of it. Messages of one topic keep
-        their order either way. ``publication`` reads the selected topics into memory first.
 
     Raises
     ------
@@ -418,14 +436,9 @@ def read_messages(path: str | os.PathLike[str], topics: Iterable[str] | None = N
     mcap_ros2.decoder.McapROS2DecodeError
         If a schema cannot be parsed.
     """
-    if order not in ORDERS:
-        raise ValueError(f'order must be one of {list(ORDERS)}, got {order!r}')
     factory = DecoderFactory()
     decoders: dict[int, Any] = {}
-    records: Iterable[tuple[Schema | None, Channel, Message]] = _iter(Path(path), topics, None)
-    if order == 'publication':
-        records = sorted(records, key=lambda r: r[2].publish_time)     # stable: ties stay in log order
-    for schema, ch, msg in records:
+    for schema, ch, msg in _iter_in(Path(path), topics, None, order):
         dec = decoders.get(ch.id)
         if dec is None:
             dec = decoders[ch.id] = factory.decoder_for(ch.message_encoding, schema)

@@ -199,7 +199,7 @@ def test_bag_holds_the_robot_model_and_a_tf_tree_on_the_sim_clock(run) -> None:
 
     out = _ok(run)
     bag = out / 'calibration.mcap'
-    assert mcap_reader.recording_metadata(bag) == {'log_time': 'sim', 'tf': 'derived'}
+    assert mcap_reader.recording_metadata(bag) == {'log_time': 'sim', 'tf': 'derived', 'publish_time': 'source'}
     edges: dict[str, tuple[str, np.ndarray]] = {}
     clocks, descriptions = [], {}
     lag_ns = []

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from calibration_interfaces.contract import CONTRACT, IMAGE_TOPICS
+from calibration_interfaces.contract import CONTRACT, IMAGE_TOPICS, RECORD_DEPTH
 from calibration_interfaces.parameters import setting
 
 from .mcap_writer import COMPRESSIONS
@@ -32,7 +32,10 @@ class RecorderSettings:
     flush_period: float = setting(1.0, 'Write a partial chunk after this long [s] (0: only full chunks)',
                                   (0.0, 3600.0))
     discovery_period: float = setting(0.5, 'Period of the check for new publishers [s]', (0.01, 60.0))
-    queue_depth: int = setting(100, 'Subscription queue depth (keep last)', (1, 100000))
+    queue_depth: int = setting(100, 'Subscription queue depth (keep last) of best-effort topics (images)', (1, 100000))
+    reliable_queue_depth: int = setting(RECORD_DEPTH, 'Subscription queue depth (keep last) of reliable topics: what '
+                                                      'waits while the recorder is busy is recorded late, not lost',
+                                        (1, 100000))
     record_tf: bool = setting(True, 'Also write /tf and /tf_static, derived from /joint_states, /body_schema/true, '
                                     '/body_schema/estimate and the camera poses (tf_recording.py)')
     robot: str = setting('icub_right_arm', 'Robot description of the TF frames: packaged name or YAML path')

@@ -1,8 +1,12 @@
 """Bag player node: republishes a recorded MCAP bag on its topics, like ``ros2 bag play``.
 
 Messages are published as the recorded CDR bytes, at their recorded log-time spacing divided by
-``rate``, with the QoS their publishers offered when recorded (latched topics: reliable,
-transient local, so late subscribers still get the facts). With ``publish_clock`` the player
+``rate``, in the order they were published when the bag says its publish times are the
+publishers' (``publish_time: source``; a recorder behind on the joint states logged the hand
+poses that follow them seconds earlier, and a replaying estimator then drops them): a message
+logged earlier than the one published before it is played at that one's time (other bags: in
+log order). They go out with the QoS their publishers offered when recorded (latched topics:
+reliable, transient local, so late subscribers still get the facts). With ``publish_clock`` the player
 also publishes ``/clock`` from the log times (``ros2 bag play --clock``); a recorded ``/clock`` is
 then not replayed, so that there is one time source. To replay a simulation in its own sim time,
 set ``publish_clock:=false``: the recorded ``/clock`` is then played like any topic.
@@ -63,7 +67,7 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 from std_srvs.srv import Trigger
 
 from calibration_interfaces import mcap_reader
-from calibration_interfaces.contract import BY_NAME
+from calibration_interfaces.contract import BY_NAME, PUBLISH_TIME_SOURCE
 from calibration_interfaces.mcap_reader import QosOffer
 from calibration_interfaces.node_util import declare_settings, message_class, spin_node
 
@@ -96,6 +100,16 @@ def playback_qos(offers: tuple[QosOffer, ...], topic: str) -> QoSProfile:
         depth=depth,
         reliability=ReliabilityPolicy.BEST_EFFORT if rel == 'best_effort' else ReliabilityPolicy.RELIABLE,
         durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
+
+
+def _monotone(messages: Iterator[mcap_reader.RawMessage]) -> Iterator[mcap_reader.RawMessage]:
+    """The messages with log times made non-decreasing (each at least the one before it)."""
+    last = None
+    for m in messages:
+        if last is not None and m.log_time_ns < last:
+            m = m._replace(log_time_ns=last)
+        last = m.log_time_ns
+        yield m
 
 
 class BagPlayerNode(Node):
@@ -199,8 +213,10 @@ class BagPlayerNode(Node):
         self._delay_timer = self.create_timer(delay, fire, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     def _start(self) -> None:
-        self._messages = mcap_reader.read_raw(self.summary.path, list(self.publishers_by_topic),
-                                         self._t0_bag if self._offset_ns else None)
+        order = ('publication' if mcap_reader.recording_metadata(self.summary.path)['publish_time']
+                 == PUBLISH_TIME_SOURCE else 'log')
+        self._messages = _monotone(mcap_reader.read_raw(self.summary.path, list(self.publishers_by_topic),
+                                                        self._t0_bag if self._offset_ns else None, order))
         self._next = next(self._messages, None)
         self._t0_wall = time.monotonic_ns()
         self._playing = True

@@ -3,12 +3,13 @@
 The file opens in ``ros2 bag play FILE.mcap``, the ``mcap`` and ``rosbags`` libraries and
 Foxglove (format: :mod:`calibration_bringup.mcap_writer`). Messages are taken raw (the CDR bytes
 as received) and written with their receive time as log time and the publisher's source
-timestamp as publish time. With ``use_sim_time`` (as ``ros2 bag record --use-sim-time``; the
-launcher's ``config/recorder.yaml`` sets it) the receive time is read on the simulation clock, so
-log times and ``header.stamp`` agree (log time = the latest ``/clock`` received, plus a nanosecond
-per message already logged in that tick so that log-time order is arrival order; a ``/clock``
-message is logged at its own time). The
-file's ``recording`` metadata says which clock it is (``log_time: sim`` or ``system``).
+timestamp as publish time (metadata ``publish_time: source``: sorted by it, a bag's topics come
+in the order they were published, whatever order the recorder took them in). With
+``use_sim_time`` (as ``ros2 bag record --use-sim-time``; the launcher's ``config/recorder.yaml``
+sets it) the receive time is read on the simulation clock, so log times and ``header.stamp``
+agree (log time = the latest ``/clock`` received, plus a nanosecond per message already logged
+in that tick so that log-time order is arrival order; a ``/clock`` message is logged at its own
+time). The file's ``recording`` metadata says which clock it is (``log_time: sim`` or ``system``).
 
 With ``record_tf`` the recorder also writes ``/tf`` and ``/tf_static`` (tf2_msgs/msg/TFMessage)
 computed from what it records, as a robot state publisher would publish them
@@ -21,8 +22,11 @@ transient local if all of them are (so latched facts published before the record
 recorded), best effort otherwise. Types come from discovery; the publishers' QoS is stored in
 the file so that the player offers it again.
 
-On SIGINT or SIGTERM (rclpy's handlers shut the context down), on ``destroy_node`` and on
-``close()`` the file is finished (summary, indexes). After a SIGKILL it is readable up to its last
+On SIGINT or SIGTERM the recorder first takes what its queues still hold (until nothing arrived
+for ``DRAIN_QUIET_S``, at most ``DRAIN_DEADLINE_S``; a second signal cuts it short): the launcher
+stops it after every other node, and a recorder behind on the joint states held the last seconds
+of them, which rclpy's handlers, shutting the context down at once, threw away. On
+``destroy_node`` and on ``close()`` the file is finished (summary, indexes). After a SIGKILL it is readable up to its last
 complete chunk; ``flush_period`` bounds how much is lost, and a record of the run (a topic with
 the contract's HISTORY QoS: the estimator's verdicts, the selector's progress) is flushed to the
 file as it arrives, with everything before it, so a SIGKILL never loses an accepted observation
@@ -55,7 +59,11 @@ flush_period : float
 discovery_period : float
     Seconds between checks for new publishers.
 queue_depth : int
-    Subscription queue depth (keep last).
+    Subscription queue depth (keep last) of best-effort topics (the images).
+reliable_queue_depth : int
+    Subscription queue depth (keep last) of reliable topics (default
+    :data:`calibration_interfaces.contract.RECORD_DEPTH`): the executor takes one message per topic
+    per wait, so the fast streams back up while it is busy, and what overflows is lost.
 record_tf : bool
     Write ``/tf`` and ``/tf_static`` derived from the joint states, the real and estimated DH
     tables and the camera poses.
@@ -71,16 +79,21 @@ from __future__ import annotations
 from calibration_interfaces import startup  # noqa: F401,I001
 
 import functools
+import signal
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
+
+import rclpy
 
 from rclpy.logging import get_logger
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, LivelinessPolicy, QoSProfile,
                        ReliabilityPolicy)
 from rclpy.serialization import deserialize_message
+from rclpy.signals import uninstall_signal_handlers
 from geometry_msgs.msg import PoseStamped
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import JointState
@@ -88,7 +101,7 @@ from std_msgs.msg import Float64MultiArray
 
 from body_schema.robot import load_robot
 
-from calibration_interfaces.contract import BY_NAME, HISTORY, IMAGE_TOPICS, ContractTopic
+from calibration_interfaces.contract import BY_NAME, HISTORY, IMAGE_TOPICS, PUBLISH_TIME_SOURCE, ContractTopic
 from calibration_interfaces.mcap_reader import QosOffer
 from calibration_interfaces.messages import MessageFormatError, msg_to_table, pose_msg_to_matrix
 from calibration_interfaces.node_util import WarnOnce, declare_settings, message_class, qos_profile, spin_node
@@ -100,6 +113,12 @@ from .tf_recording import TF_STATIC_TOPIC, TF_TOPIC, TF_TYPE, TfBook, TfRecord
 #: What a tf2 broadcaster offers: /tf a reliable stream, /tf_static latched (depth 1).
 _TF_QOS = {TF_TOPIC: QosOffer('keep_last', 100, 'reliable', 'volatile'),
            TF_STATIC_TOPIC: QosOffer('keep_last', 1, 'reliable', 'transient_local')}
+
+
+#: After SIGINT / SIGTERM: the queues are drained once nothing arrived for this long [s] ...
+DRAIN_QUIET_S = 0.25
+#: ... or after this long at most [s] (the launcher kills a node 15 s after its SIGINT).
+DRAIN_DEADLINE_S = 10.0
 
 
 def qos_offer(profile: QoSProfile) -> QosOffer:
@@ -116,11 +135,15 @@ def qos_offer(profile: QoSProfile) -> QosOffer:
         avoid_ros_namespace_conventions=bool(profile.avoid_ros_namespace_conventions))
 
 
-def request_qos(offers: list[QoSProfile], depth: int) -> QoSProfile:
-    """rosbag2's subscription QoS for a set of publishers (compatible with all of them)."""
+def request_qos(offers: list[QoSProfile], depth: int, reliable_depth: int | None = None) -> QoSProfile:
+    """rosbag2's subscription QoS for a set of publishers (compatible with all of them).
+
+    ``depth`` is the queue of a best-effort subscription, ``reliable_depth`` (default ``depth``)
+    that of a reliable one.
+    """
     reliable = bool(offers) and all(o.reliability == ReliabilityPolicy.RELIABLE for o in offers)
     latched = bool(offers) and all(o.durability == DurabilityPolicy.TRANSIENT_LOCAL for o in offers)
-    return QoSProfile(depth=depth,
+    return QoSProfile(depth=reliable_depth if reliable and reliable_depth is not None else depth,
                       reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
                       durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
 
@@ -159,6 +182,7 @@ class RecorderNode(Node):
         cameras = load_robot(s.robot).camera_names
         self.wanted = [t for t in self.wanted if not (t.startswith('/camera/') and t.split('/')[2] not in cameras)]
         self._depth = s.queue_depth
+        self._reliable_depth = s.reliable_queue_depth
         self._writer = McapBagWriter(self.output, compression=s.compression, chunk_size=s.chunk_size)
         self.counts = self._writer.counts
         self._subs_by_topic: dict[str, Any] = {}
@@ -169,7 +193,8 @@ class RecorderNode(Node):
         self._clock_ns = 0
         self._last_log_ns = -1
         self._writer.add_metadata('recording', {'log_time': 'sim' if self._sim_time else 'system',
-                                                'tf': 'derived' if s.record_tf else 'none'})
+                                                'tf': 'derived' if s.record_tf else 'none',
+                                                'publish_time': PUBLISH_TIME_SOURCE})
         self._tf = TfBook(load_robot(s.robot)) if s.record_tf else None
         for topic in self.wanted:
             if topic in BY_NAME:
@@ -197,7 +222,7 @@ class RecorderNode(Node):
             cls = message_class(topic.type)
         except ImportError:
             return                              # discovery will report it
-        qos = qos_profile(topic.qos, depth=self._depth)
+        qos = qos_profile(topic.qos, depth=self._depth if topic.sensor else self._reliable_depth)
         sub = self.create_subscription(cls, topic.name, functools.partial(self._on_message, topic.name), qos, raw=True)
         self._early[topic.name] = (sub, qos)
 
@@ -255,7 +280,7 @@ class RecorderNode(Node):
             self._subs_by_topic[topic] = None   # do not retry every period
             return
         offers = self._add_channel(topic, type_name, endpoints)
-        qos = request_qos(offers, self._depth)
+        qos = request_qos(offers, self._depth, self._reliable_depth)
         self._subs_by_topic[topic] = self.create_subscription(
             cls, topic, functools.partial(self._on_message, topic), qos, raw=True)
         self.get_logger().info(f'recording {topic} ({type_name}, '
@@ -272,13 +297,16 @@ class RecorderNode(Node):
             if topic == '/clock':
                 self._clock_ns = _stamp_ns(deserialize_message(data, ClockMsg).clock)
             now = self._clock_ns if '/clock' in self.wanted else self.get_clock().now().nanoseconds
-            # One nanosecond apart within a clock tick: log-time order stays arrival order, which
-            # the offline evaluation replays (a progress record after the update it reports).
+            # One nanosecond apart within a clock tick: log-time order stays arrival order (the
+            # player replays it; the offline evaluation replays publication order, see below).
             log_time = self._last_log_ns = max(now, self._last_log_ns + 1)
         else:
             # rmw's reception time when it has one (Fast DDS does), else now; both are system time.
             log_time = info.get('received_timestamp') or time.time_ns()
-        self._writer.write(topic, data, log_time, info.get('source_timestamp') or log_time,
+        # Publish time on the graph's wall clock always (metadata publish_time: source): the
+        # source timestamp, else the receive time, the nearest bound a receiver has.
+        publish_time = info.get('source_timestamp') or info.get('received_timestamp') or time.time_ns()
+        self._writer.write(topic, data, log_time, publish_time,
                            info.get('publication_sequence_number') or 0)
         if topic in BY_NAME and BY_NAME[topic].qos is HISTORY:
             self._writer.flush()            # a run's record is on disk before the next message
@@ -305,6 +333,35 @@ class RecorderNode(Node):
             self._warn(topic, f'no TF from {topic}: {exc}')
         return []
 
+    def drain(self, spin_once: Callable[[float], None], quiet: float = DRAIN_QUIET_S,
+              deadline: float = DRAIN_DEADLINE_S, cut: Callable[[], bool] = lambda: False) -> int:
+        """Record what the subscriptions still hold; returns how many messages that wrote.
+
+        Parameters
+        ----------
+        spin_once : callable
+            ``spin_once(timeout)``: one turn of the executor this node is spun by.
+        quiet : float
+            Drained once nothing was written for ``quiet`` seconds.
+        deadline : float
+            At most this long [s].
+        cut : callable
+            Stops the drain when it returns true (a second signal).
+        """
+        start = last = time.monotonic()
+        before = sum(self.counts.values())
+        written = 0
+        while self.context.ok() and not self._closed and not cut():
+            spin_once(quiet)
+            now, total = time.monotonic(), sum(self.counts.values()) - before
+            if total > written:
+                written, last = total, now
+            elif now - last >= quiet:       # quiet since the last message (a timer's turn aside)
+                break
+            if now - start >= deadline:
+                break
+        return written
+
     def close(self) -> None:
         """Stop recording and finish the file (idempotent)."""
         if self._closed:
@@ -329,10 +386,22 @@ class RecorderNode(Node):
         super().destroy_node()
 
 
+def _run_then_drain(node: RecorderNode) -> None:
+    """Spin until SIGINT or SIGTERM, then :meth:`RecorderNode.drain` (the context still up)."""
+    signals: list[int] = []
+    uninstall_signal_handlers()         # rclpy's would shut the context down with messages queued
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda s, _frame: signals.append(s))
+    while rclpy.ok(context=node.context) and not signals:
+        rclpy.spin_once(node, timeout_sec=0.1)
+    t0 = time.monotonic()
+    n = node.drain(lambda timeout: rclpy.spin_once(node, timeout_sec=timeout), cut=lambda: len(signals) > 1)
+    node.get_logger().info(f'stopping: {n} queued messages recorded in {time.monotonic() - t0:.2f} s')
+
+
 def main(args: list[str] | None = None) -> None:
-    # rclpy installs SIGINT and SIGTERM handlers that shut the context down: spin() then raises
-    # ExternalShutdownException (or KeyboardInterrupt) and destroy_node() finishes the file.
-    spin_node(RecorderNode, args)
+    # SIGINT / SIGTERM end the spin, the queues are drained, destroy_node() finishes the file.
+    spin_node(RecorderNode, args, _run_then_drain)
 
 
 if __name__ == '__main__':

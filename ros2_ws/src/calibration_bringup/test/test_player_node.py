@@ -10,13 +10,14 @@ from typing import Any
 import pytest
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
-from rclpy.serialization import serialize_message
+from rclpy.serialization import deserialize_message, serialize_message
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CompressedImage, Image, JointState
 from std_msgs.msg import Float64MultiArray, String
 
 from calibration_bringup.mcap_writer import McapBagWriter
 from calibration_interfaces import mcap_reader as bag
+from calibration_interfaces.contract import PUBLISH_TIME_SOURCE
 from calibration_interfaces.mcap_reader import QosOffer
 from calibration_bringup.player_node import BagPlayerNode, playback_qos
 from calibration_bringup.recorder_node import RecorderNode
@@ -131,6 +132,39 @@ def test_fast_filtered_looping_playback_replaces_the_recorded_clock(ros: Any, tm
     ros.spin_until(lambda: len(got) >= 10, 10.0, 'played messages')
     assert [m.data for m in got[:10]] == [f'c{i % 5}' for i in range(10)]
     assert clock and all(c.clock.sec >= 1000 for c in clock)   # from log times, not the recorded zeros
+
+
+def test_a_bag_logged_behind_on_one_topic_is_played_in_publication_order(ros: Any, tmp_path: Path) -> None:
+    """The recorder logged /hand_pose-like messages 1.5 s before the /joint_states-like ones
+    published before them; the player sends them in the order they were published.
+
+    On main it played log order: a fresh estimator fed a launched run's bag made 1 of its 5
+    updates (each hand pose came before its joint states, and the next command before both).
+    """
+    path = tmp_path / 'lagging.mcap'
+    sent = []              # (publish time, topic, text): what the publishers did, in order
+    for i in range(6):
+        sent += [(10 * i, '/first', f'f{i}'), (10 * i + 5, '/second', f's{i}')]
+    with McapBagWriter(path) as w:
+        w.add_metadata('recording', {'log_time': 'sim', 'tf': 'none', 'publish_time': PUBLISH_TIME_SOURCE})
+        for topic in ('/first', '/second'):
+            w.add_channel(topic, 'std_msgs/msg/String', [QosOffer()])
+        # Log time: publication + 1.5 s for /first (the topic the recorder is behind on).
+        logged = sorted(sent, key=lambda e: e[0] * 10**6 + (1_500_000_000 if e[1] == '/first' else 0))
+        last = 0
+        for pub_ms, topic, text in logged:
+            last = max(last + 1, pub_ms * 10**6 + (1_500_000_000 if topic == '/first' else 0))
+            w.write(topic, serialize_message(String(data=text)), last, pub_ms * 10**6)
+    player = _player(ros, path, rate=0.0, start_paused=True)
+    # The order of the publish calls (a subscriber's executor takes one message per topic per wait,
+    # so what it receives across topics interleaves whatever the order sent).
+    got: list[str] = []
+    for pub in player.publishers_by_topic.values():
+        pub.publish = lambda data, _publish=pub.publish: (got.append(deserialize_message(data, String).data),
+                                                           _publish(data))
+    player.resume()
+    ros.spin_until(lambda: player.done, 10.0, f'the bag played (have {got})')
+    assert got == [text for _, _, text in sent]
 
 
 def test_playback_qos_and_bad_parameters(ros: Any, tmp_path: Path) -> None:

@@ -91,6 +91,59 @@ def test_records_contract_topics_readable_by_mcap_and_rosbags(ros: Any, tmp_path
     assert positions == pytest.approx([0.01 * i for i in range(N)])
 
 
+def test_a_stalled_recorder_loses_no_joint_state_and_keeps_their_publication_order(ros: Any, tmp_path: Path) -> None:
+    """Three seconds of joint states at rtf 2 (300) wait while the recorder's executor is busy.
+
+    On main its reliable queue was 100 deep (one second of them): a launched run under load lost
+    a fifth of its joint states and the offline re-run lacked what the estimator had used.
+    """
+    probe = ros.node('probe')
+    js = probe.create_publisher(JointState, '/joint_states', qos_profile('/joint_states'))
+    hand = probe.create_publisher(PoseWithCovarianceStamped, '/hand_pose', qos_profile('/hand_pose'))
+    path = tmp_path / 'stalled.mcap'
+    rec = _recorder(ros, path)
+    ros.spin_until(lambda: js.get_subscription_count() and hand.get_subscription_count(), 15.0,
+                   'the recorder subscribing')
+    n = 300
+    for i in range(n):              # nobody spins: the recorder's executor is stalled meanwhile
+        js.publish(_joint_state(i))
+        if i % 10 == 5:
+            hand.publish(PoseWithCovarianceStamped())
+    ros.spin_until(lambda: rec.counts.get('/joint_states') == n and rec.counts.get('/hand_pose') == n // 10, 20.0,
+                   f'{n} joint states and {n // 10} hand poses recorded (have {rec.counts})')
+    rec.close()
+    assert bag.recording_metadata(path)['publish_time'] == 'source'
+    assert [m.header.stamp.sec for _, _, m in bag.read_messages(path, ['/joint_states'])] == list(range(n))
+    # Read by publish time, each hand pose follows the joint state published before it, as the
+    # executor took them (one per topic per wait) or not.
+    order = [(t, m.header.stamp.sec) for t, _, m in bag.read_messages(path, ['/joint_states', '/hand_pose'],
+                                                                     order='publication')]
+    hand_after = [order[k - 1][1] for k, (t, _) in enumerate(order) if t == '/hand_pose']
+    assert hand_after == list(range(5, n, 10))
+
+
+def test_a_stopped_recorder_first_records_what_its_queues_hold(ros: Any, tmp_path: Path) -> None:
+    """What a busy recorder holds when it is told to stop is recorded before the file is finished.
+
+    On main SIGINT shut the context down at once: a launched run's recorder, seconds behind on
+    the joint states, closed its bag without the last 3 s of them (67 hand poses re-run without
+    joint states).
+    """
+    probe = ros.node('probe')
+    js = probe.create_publisher(JointState, '/joint_states', qos_profile('/joint_states'))
+    path = tmp_path / 'drained.mcap'
+    rec = _recorder(ros, path, flush_period=0.05)       # a timer turn on the way must not end the drain
+    ros.spin_until(lambda: js.get_subscription_count(), 15.0, 'the recorder subscribing')
+    for i in range(200):
+        js.publish(_joint_state(i))
+    t0 = time.monotonic()
+    assert rec.drain(lambda timeout: ros.executor.spin_once(timeout_sec=timeout)) == 200
+    assert time.monotonic() - t0 < 5.0
+    assert rec.drain(lambda timeout: ros.executor.spin_once(timeout_sec=timeout)) == 0   # drained
+    rec.close()
+    assert [m.header.stamp.sec for _, _, m in bag.read_messages(path, ['/joint_states'])] == list(range(200))
+
+
 def test_late_topics_extra_topics_and_excluded_images(ros: Any, tmp_path: Path) -> None:
     path = tmp_path / 'late.mcap'
     rec = _recorder(ros, path, topics=['/joint_states', '/camera/left/image_raw', 'extra'],

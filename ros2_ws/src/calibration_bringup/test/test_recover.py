@@ -21,7 +21,7 @@ from calibration_interfaces import mcap_reader as bag
 from calibration_interfaces.mcap_reader import BagError, QosOffer
 
 TEXTS = [f'{i:04d} ' + 'x' * (50 + 37 * i % 300) for i in range(120)]
-RECORDING = {'log_time': 'sim', 'tf': 'derived'}
+RECORDING = {'log_time': 'sim', 'tf': 'derived', 'publish_time': 'source'}
 
 
 def _cdr_string(text: str) -> bytes:

@@ -12,7 +12,8 @@ from dataclasses import dataclass
 
 from .parameters import setting
 
-__all__ = ['Reliability', 'Durability', 'QosSpec', 'SENSOR', 'RELIABLE', 'LATCHED', 'HISTORY', 'ContractTopic',
+__all__ = ['Reliability', 'Durability', 'QosSpec', 'SENSOR', 'RELIABLE', 'LATCHED', 'HISTORY', 'RECORD_DEPTH',
+           'PUBLISH_TIME_SOURCE', 'ContractTopic',
            'CONTRACT', 'BY_NAME', 'IMAGE_TOPICS', 'COMPRESSED_IMAGE_TOPICS', 'IMAGE_TRANSPORTS', 'image_topic', 'topic',
            'ESTIMATE_FRAME_PREFIX', 'optical_frame', 'RUN_ID_TOPIC', 'RunSettings']
 
@@ -64,6 +65,19 @@ LATCHED = QosSpec(Reliability.RELIABLE, Durability.TRANSIENT_LOCAL, 1)
 #: still receives the last 100. A volatile stream lost the first verdict that way: the selector
 #: timed out on an observation the estimator had used.
 HISTORY = QosSpec(Reliability.RELIABLE, Durability.TRANSIENT_LOCAL, 100)
+#: Keep-last depth of a recording subscriber's queue for a reliable topic: how many messages of
+#: one topic may wait while the recorder's executor is busy. An rclpy executor takes one message
+#: per topic per wait, so under load the fastest streams (/joint_states and /clock, 100 a second
+#: each at rtf 2) back up first; at depth 100 (one second of them) a loaded run lost a fifth of
+#: its joint states and logged the rest up to 2 s of sim time behind the hand poses they cover.
+#: 2000 is 20 s of them; best-effort streams (images) keep the recorder's ``queue_depth``.
+RECORD_DEPTH = 2000
+#: What a bag's publish times are when its ``recording`` metadata says ``publish_time: source``:
+#: each message's source timestamp, stamped by its publisher on the wall clock the graph's
+#: processes share. Sorted by it, the messages of all topics come in the order they were
+#: published, which is the order a subscriber that keeps up receives them in; the recorder's
+#: arrival (log-time) order is only that while the recorder keeps up with every topic.
+PUBLISH_TIME_SOURCE = 'source'
 
 
 @dataclass(frozen=True)

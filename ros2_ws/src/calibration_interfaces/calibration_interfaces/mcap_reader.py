@@ -24,6 +24,7 @@ The bag player, the report and the offline evaluation all read bags through this
 """
 from __future__ import annotations
 
+import heapq
 import os
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
@@ -39,7 +40,8 @@ import yaml
 from mcap_ros2.decoder import DecoderFactory
 
 __all__ = ['INFINITE_NS', 'MAGIC', 'BagError', 'QosOffer', 'parse_offered_qos', 'RawMessage', 'TopicSummary',
-           'BagSummary', 'summary', 'recording_metadata', 'read_raw', 'read_messages', 'COMPRESSIONS', 'recover']
+           'BagSummary', 'summary', 'recording_metadata', 'read_raw', 'ORDERS', 'read_messages', 'COMPRESSIONS',
+           'recover']
 
 #: rmw's RMW_DURATION_INFINITE (2^63 - 1 ns), written as {sec: 9223372036, nsec: 854775807}.
 INFINITE_NS = 2**63 - 1
@@ -329,12 +331,15 @@ def summary(path: str | os.PathLike[str]) -> BagSummary:
 
 
 def recording_metadata(path: str | os.PathLike[str]) -> dict[str, str]:
-    """The recorder's ``recording`` metadata: ``log_time`` (``sim`` or ``system``) and ``tf``.
+    """The recorder's ``recording`` metadata: ``log_time`` (``sim`` or ``system``), ``tf`` and
+    ``publish_time`` (``source``: the publishers' source timestamps,
+    :data:`calibration_interfaces.contract.PUBLISH_TIME_SOURCE`; else ``unknown``).
 
     A bag written before the recorder wrote it (or by another tool) says nothing: its log times
-    are system time, as rosbag2's without ``--use-sim-time``; that default is returned.
+    are system time, as rosbag2's without ``--use-sim-time``, and its publish times unknown;
+    those defaults are returned.
     """
-    out = {'log_time': 'system', 'tf': 'none'}
+    out = {'log_time': 'system', 'tf': 'none', 'publish_time': 'unknown'}
     with _open(path) as f:
         if _read_end(f)[0]:
             f.seek(0)
@@ -366,8 +371,25 @@ def _iter(path: Path, topics: Iterable[str] | None,
                 yield scan.schemas.get(ch.schema_id), ch, msg
 
 
+#: Orders the readers read in: ``log`` (the recorder's arrival order; file order for a killed
+#: recording) or ``publication`` (by publish time; each topic in log order, merged).
+ORDERS: tuple[str, ...] = ('log', 'publication')
+
+
+def _iter_in(path: Path, topics: Iterable[str] | None, start_ns: int | None,
+             order: str) -> Iterator[tuple[Schema | None, Channel, Message]]:
+    """:func:`_iter` in ``order``: by publication, one reader per topic, merged on publish time
+    (memory: one message per topic, images included)."""
+    if order not in ORDERS:
+        raise ValueError(f'order must be one of {list(ORDERS)}, got {order!r}')
+    if order == 'log':
+        return _iter(path, topics, start_ns)
+    names = sorted(summary(path).topics) if topics is None else sorted(set(topics))
+    return heapq.merge(*(_iter(path, [t], start_ns) for t in names), key=lambda r: r[2].publish_time)
+
+
 def read_raw(path: str | os.PathLike[str], topics: Iterable[str] | None = None,
-             start_ns: int | None = None) -> Iterator[RawMessage]:
+             start_ns: int | None = None, order: str = 'log') -> Iterator[RawMessage]:
     """Recorded messages as CDR bytes, in log-time order (file order for a killed recording).
 
     Parameters
@@ -378,27 +400,45 @@ def read_raw(path: str | os.PathLike[str], topics: Iterable[str] | None = None,
         Only these topics (default: all).
     start_ns : int, optional
         Only messages logged at or after this time [ns].
+    order : {'log', 'publication'}
+        ``log``: as the recorder logged them (its arrival order). ``publication``: by publish
+        time, the order the publishers sent them in when the bag's publish times are their
+        source timestamps (:func:`recording_metadata` says ``publish_time: source``); a recorder
+        that fell behind on one topic logged the others ahead of it. Messages of one topic keep
+        their order either way.
+
+    Raises
+    ------
+    ValueError
+        If ``order`` is not one of :data:`ORDERS`.
     """
-    for schema, ch, msg in _iter(Path(path), topics, start_ns):
+    for schema, ch, msg in _iter_in(Path(path), topics, start_ns, order):
         yield RawMessage(ch.topic, schema.name if schema else '', msg.log_time, msg.publish_time,
                          msg.data)
 
 
-def read_messages(path: str | os.PathLike[str],
-                  topics: Iterable[str] | None = None) -> Iterator[tuple[str, int, Any]]:
+def read_messages(path: str | os.PathLike[str], topics: Iterable[str] | None = None,
+                  order: str = 'log') -> Iterator[tuple[str, int, Any]]:
     """Decoded messages as ``(topic, log_time_ns, msg)``.
 
     ``msg`` is an ``mcap_ros2`` dynamic object with the message's fields as attributes (e.g.
     ``msg.header.stamp.sec``, ``msg.position``), built from the schema stored in the file.
 
+    Parameters
+    ----------
+    path, topics, order
+        As :func:`read_raw`.
+
     Raises
     ------
+    ValueError
+        If ``order`` is not one of :data:`ORDERS`.
     mcap_ros2.decoder.McapROS2DecodeError
         If a schema cannot be parsed.
     """
     factory = DecoderFactory()
     decoders: dict[int, Any] = {}
-    for schema, ch, msg in _iter(Path(path), topics, None):
+    for schema, ch, msg in _iter_in(Path(path), topics, None, order):
         dec = decoders.get(ch.id)
         if dec is None:
             dec = decoders[ch.id] = factory.decoder_for(ch.message_encoding, schema)

@@ -1,7 +1,8 @@
 """Offline evaluation of a recorded calibration run: re-run the EKF on a bag, score every iteration.
 
 Reads an MCAP bag written by the recorder (``calibration_bringup.recorder_node``), feeds its
-``/joint_states``, ``/arm/command`` and ``/hand_pose`` messages, in recorded order, through the
+``/joint_states``, ``/arm/command`` and ``/hand_pose`` messages, in the order they were published
+(recorded order for a bag whose publish times are not the publishers'), through the
 same :class:`~dh_estimator.pairing.MessageFeeder`, :class:`~dh_estimator.pairing.ObservationPairer` and
 :class:`~dh_estimator.estimator.OnlineEstimator` the node uses, with the run's settings (``--params-file``,
 the estimator's parameter file) or others (``--noise-model constant`` re-runs the paper's CN
@@ -13,10 +14,19 @@ The estimate the online node published (``/body_schema/estimate``) is scored nex
 equal settings the two agree (the test suite checks it). A joint state's log time stands for
 the node's clock when it arrived (the simulator publishes ``/clock`` with every joint state, and
 the recorder logs on it), so joint states stamped in the future and clock steps back are judged
-as online. Hand poses are not judged on it: under image load the recorder logs them before the
-joint states it is still catching up on (up to 1.9 s of log time early, measured at rtf 2), so
+as online. Hand poses are not judged on it: under load the recorder logs them before the
+joint states it is still catching up on (up to 2 s of log time early, measured at rtf 2), so
 the re-run keeps them waiting for their joint states; a stray future one then never meets a
 joint state and makes no update, as online, where it is refused.
+
+Why publication order: the recorder's executor takes one message per topic per wait, so under load
+it falls behind on the fast streams (/joint_states, /clock) and logs the slow ones (hand poses,
+commands, verdicts) ahead of them, up to 2 s of sim time. Replayed in that order, each hand pose
+waited behind some 30 newer ones for its joint states and the pairing dropped it after
+``max_pending`` (a re-run with 2 of the 5 online updates). The estimator, which keeps up, receives
+them as they were published; the recorder stores each message's source timestamp as its publish
+time (metadata ``publish_time: source``,
+:data:`calibration_interfaces.contract.PUBLISH_TIME_SOURCE`), and the re-run reads in that order.
 
 Usage::
 
@@ -50,6 +60,7 @@ from body_schema.map_estimator import COVARIANCES, LOSSES
 from body_schema.metrics import PoseErrorEvaluator, expected_pose_errors
 from body_schema.noise import NOISE_MODELS
 from calibration_interfaces import mcap_reader
+from calibration_interfaces.contract import PUBLISH_TIME_SOURCE
 from calibration_interfaces.messages import msg_to_covariance, msg_to_extrinsics, msg_to_table
 from calibration_interfaces.noise import NoiseSettings
 from calibration_interfaces.parameters import read_params_file
@@ -230,7 +241,8 @@ def evaluate_bag(path: str | Path, settings: EvaluationSettings = EvaluationSett
     cam_std, marker_std = settings.estimator.extrinsic_priors
     absorbed = list(absorbed_parameters(model.n_joints, cam_std is not None, marker_std is not None))
     n_cov = model.n_params + 6 * sum(s is not None for s in (cam_std, marker_std))
-    for topic, log_ns, msg in mcap_reader.read_messages(path, TOPICS):
+    order = 'publication' if mcap_reader.recording_metadata(path)['publish_time'] == PUBLISH_TIME_SOURCE else 'log'
+    for topic, log_ns, msg in mcap_reader.read_messages(path, TOPICS, order):
         if topic == '/body_schema/true':
             true_dh = msg_to_table(msg, model.n_joints)
             scored = true_dh.copy()

@@ -23,6 +23,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 from body_schema import load_robot, sampling
 from body_schema.noise import PoseDependentNoise
 from calibration_bringup.mcap_writer import McapBagWriter
+from calibration_interfaces.contract import PUBLISH_TIME_SOURCE
 from calibration_interfaces.messages import covariance_to_msg, matrix_to_pose_msg, pose_msg_to_matrix, table_to_msg
 from dh_estimator.estimator import OnlineEstimator
 from dh_estimator.evaluate import (BagFormatError, EvaluationSettings, IterationRow, evaluate_bag, main, summary_text,
@@ -221,6 +222,83 @@ def test_a_stray_stamp_only_the_recorder_heard_leaves_the_offline_run_equal_to_t
     assert ev.max_online_offline_difference < 1e-11
     assert ev.pairing['future_joint_states'] == 1
     assert 'future joint states 1' in summary_text(ev)
+
+
+def write_lagging_bag(path: Path, online: list[np.ndarray], lag: float, publish_times: bool) -> Path:
+    """The synthetic run as a recorder that fell ``lag`` seconds behind on /joint_states logs it.
+
+    Per iteration: the command, joint states every 20 ms resting at the target, a hand pose every
+    50 ms from 0.3 s (only the first is a new configuration; the rest are duplicates), the
+    estimate after the first, the progress record. Each message's publish time is when it was
+    sent; its log time is that too, but ``lag`` later for the joint states: as the recorder's
+    executor, which takes one message per topic per wait, logged them under load (1.5-2 s of sim
+    time late at rtf 2, measured). ``publish_times``: the bag says its publish times are the
+    publishers' (metadata ``publish_time: source``), as the recorder's do.
+    """
+    events: list[tuple[float, float, int, str, str, object]] = []   # (log time, publish time, seq, ...)
+
+    def put(topic: str, type_name: str, msg: object, t: float, delay: float = 0.0) -> None:
+        events.append((t + delay, t, len(events), topic, type_name, msg))
+
+    put('/body_schema/true', 'std_msgs/msg/Float64MultiArray', table_to_msg(TRUE_DH), 0.0)
+    put('/body_schema/estimate', 'std_msgs/msg/Float64MultiArray', table_to_msg(X0), 0.0)
+    put('/body_schema/covariance', 'std_msgs/msg/Float64MultiArray', covariance_to_msg(P0), 0.0)
+    updates = iter(online)
+    for k, (q, pose, R) in enumerate(_attempts(), start=1):
+        t0 = 2.0 * k
+        put('/arm/command', 'trajectory_msgs/msg/JointTrajectory',
+            JointTrajectory(joint_names=list(MODEL.joint_names), points=[JointTrajectoryPoint(positions=q.tolist())]),
+            t0)
+        for t in np.arange(t0 + 0.01, t0 + 1.0, 0.02):
+            js = JointState(name=list(MODEL.joint_names), position=q.tolist())
+            js.header.stamp = _stamp(float(t))
+            put('/joint_states', 'sensor_msgs/msg/JointState', js, float(t), lag)
+        if k != FAILED:
+            for i, t in enumerate(np.arange(t0 + 0.3, t0 + 0.99, 0.05)):
+                hp = PoseWithCovarianceStamped()
+                hp.header.stamp = _stamp(float(t))
+                hp.pose.pose = matrix_to_pose_msg(pose)
+                hp.pose.covariance = R.ravel().tolist()
+                put('/hand_pose', 'geometry_msgs/msg/PoseWithCovarianceStamped', hp, float(t) + 0.015)
+                if i == 0:
+                    put('/body_schema/estimate', 'std_msgs/msg/Float64MultiArray', table_to_msg(next(updates)),
+                        float(t) + 0.03)
+        record = {'iteration': k, 'strategy': 'al', 'outcome': 'failed' if k == FAILED else 'accepted',
+                  'detected': k != FAILED, 'movement_deg': 10.0 * k, 'discarded': int(k >= FAILED),
+                  'selection_s': 0.1, 'sim_time': t0 + 1.0}
+        put('/calibration/progress', 'std_msgs/msg/String', String(data=json.dumps(record)), t0 + 1.0)
+    w = McapBagWriter(path)
+    if publish_times:
+        w.add_metadata('recording', {'log_time': 'sim', 'tf': 'none', 'publish_time': PUBLISH_TIME_SOURCE})
+    last = 0
+    for log_t, pub_t, _, topic, type_name, msg in sorted(events, key=lambda e: (e[0], e[2])):
+        w.add_channel(topic, type_name)
+        last = max(last + 1, int(round(log_t * 1e9)))      # the recorder's log times: arrival order
+        w.write(topic, serialize_message(msg), last, int(round(pub_t * 1e9)))
+    w.close()
+    return path
+
+
+def test_a_recorder_behind_on_joint_states_leaves_the_re_run_equal_to_the_online_one(tmp_path: Path) -> None:
+    """The re-run replays the order the messages were published in, not the recorder's.
+
+    On main the re-run replayed log order: each hand pose waited for joint states logged 1.5 s
+    later, behind more than ``max_pending`` newer images, and was dropped (a launched run: 2 of
+    its 5 online updates re-run, 'pending dropped 236', 25 mm offline against 3.5 mm online).
+    """
+    tables = direct_run()
+    lagging = evaluate_bag(write_lagging_bag(tmp_path / 'lag.mcap', tables, lag=1.5, publish_times=True))
+    assert lagging.counters['updates'] == ITERATIONS - 1
+    assert lagging.pairing['pending_dropped'] == 0
+    assert lagging.max_online_offline_difference < 1e-11
+    assert [r.offline_updates for r in lagging.rows[1:]] == [1, 2, 2, 3, 4, 5]
+    # The same bag without the recorder's word on its publish times is replayed as logged: the
+    # order that lost the updates (what a bag of another recorder gets).
+    legacy = evaluate_bag(write_lagging_bag(tmp_path / 'legacy.mcap', tables, lag=1.5, publish_times=False))
+    assert legacy.pairing['pending_dropped'] > 0 and legacy.counters['updates'] < ITERATIONS - 1
+    # A recorder that kept up: both orders agree.
+    prompt = evaluate_bag(write_lagging_bag(tmp_path / 'prompt.mcap', tables, lag=0.0, publish_times=False))
+    assert prompt.counters['updates'] == ITERATIONS - 1 and prompt.max_online_offline_difference < 1e-11
 
 
 def _chunks(path: Path):

@@ -14,15 +14,18 @@ before it. Each row is an experiment (:mod:`calibration_bringup.experiment`, on 
 row 0 writes into ``results/experiment-paper`` and the last into ``results/experiment-ours``,
 where ``make experiment-paper`` and ``make experiment`` write, so runs either made are shared
 (their settings hashes match) and skipped; the rows between go to ``<output>/<NN>-<name>``.
-Interrupted, the same command resumes.
+Interrupted, the same command resumes; with ``--table-only`` it runs nothing and re-makes the
+table and figure from the runs already finished (those of the requested repetitions).
 
 The table (``<output>/ablation.md``, and ``ablation.png``) gives per row the final position and
 orientation errors (mean, median), movement and discarded attempts of each method, and for AL
-the paired change against the previous row (median difference, how often lower, Wilcoxon p).
+the paired change against the previous row (median difference, how often lower, Wilcoxon p), or
+"same final errors" where the change does not touch the method's results (R never meets the selector).
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import sys
 import time
 from dataclasses import dataclass
@@ -74,6 +77,14 @@ def _cell(m: MethodRuns, column: str, digits: int) -> str:
     return f'{np.nanmean(v):.{digits}f} ({np.nanmedian(v):.{digits}f})'
 
 
+def _identical(a: MethodRuns, b: MethodRuns) -> bool:
+    """Whether two rows' runs of a method end with the same errors on every shared repetition."""
+    fa = dict(zip(a.repetitions.tolist(), zip(a.final('position_mm'), a.final('orientation_deg'))))
+    fb = dict(zip(b.repetitions.tolist(), zip(b.final('position_mm'), b.final('orientation_deg'))))
+    shared = fa.keys() & fb.keys()
+    return bool(shared) and all(np.allclose(fa[r], fb[r], rtol=0.0, atol=1e-9, equal_nan=True) for r in shared)
+
+
 def table_markdown(results: Sequence[tuple[Row, dict[str, MethodRuns]]], command: str) -> str:
     """The ablation table: one line per row and method, AL's paired change against the row before."""
     methods = sorted({m for _, data in results for m in data}, key=ORDER.index)
@@ -96,7 +107,10 @@ def table_markdown(results: Sequence[tuple[Row, dict[str, MethodRuns]]], command
             versus = '-'
             if method in previous:
                 n, d, lower, p = paired_difference(m, previous[method], 'position_mm')
-                versus = f'{d:+.2f} mm, {lower}/{n}, p = {p:.2g}' if n else '-'
+                if n and _identical(m, previous[method]):
+                    versus = 'same final errors'      # e.g. a selector change, which R never meets
+                else:
+                    versus = f'{d:+.2f} mm, {lower}/{n}, p = {p:.2g}' if n else '-'
             lines.append(f'| {row.index} | {row.change} | {method} | {_cell(m, "position_mm", 2)} | '
                          f'{_cell(m, "orientation_deg", 2)} | {np.nanmean(m.final("movement_deg")):.0f} | '
                          f'{np.nanmean(m.final("discarded")):.1f} | {versus} |')
@@ -151,6 +165,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--ours-output', type=Path, default=Path('results/experiment-ours'),
                    help="the last row's experiment (shared with make experiment) [results/experiment-ours]")
     p.add_argument('--seed-base', type=int, default=0, help='repetition r has seed seed_base + r [0]')
+    p.add_argument('--table-only', action='store_true',
+                   help='run nothing: make the table and figure from the runs already finished')
     return p
 
 
@@ -167,8 +183,8 @@ def main(argv: Sequence[str] | None = None, stream: TextIO = sys.stderr) -> int:
         return 2
     t0 = time.monotonic()
     failed = 0
-    with ray_runtime(None, args.jobs):
-        for row in table:
+    with ray_runtime(None, args.jobs) if not args.table_only else contextlib.nullcontext():
+        for row in table if not args.table_only else ():
             stream.write(f'ablation: row {row.index}/{len(table) - 1} ({row.name}: {row.change}) -> '
                          f'{row.config.output}\n')
             try:
@@ -181,8 +197,11 @@ def main(argv: Sequence[str] | None = None, stream: TextIO = sys.stderr) -> int:
         done = [p for p in (spec.path(row.config.output, '.csv') for spec in plan_runs(row.config)) if p.exists()]
         if done:
             results.append((row, load_metrics(done)))
+    if not results:
+        print(f'ablation: no finished runs under {args.output}', file=stream)
+        return 1
     command = 'python -m calibration_bringup.ablation' + ''.join(
-        f' {a}' for a in (argv if argv is not None else sys.argv[1:]))
+        f' {a}' for a in (argv if argv is not None else sys.argv[1:]) if a != '--table-only')
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
     (out / 'ablation.md').write_text(table_markdown(results, command.strip()))

@@ -44,7 +44,7 @@ def test_the_table_pairs_each_row_with_the_one_above(tmp_path: Path) -> None:
                (rows[1], {'AL': _runs('AL', [9.0, 18.0, 27.0]), 'R': _runs('R', [5.0, 5.0, 5.0])})]
     text = ablation.table_markdown(results, 'python -m calibration_bringup.ablation')
     lines = [line for line in text.splitlines() if line.startswith('| 1 |')]
-    assert lines[0].startswith(f'| 1 | {ABLATION[0].change} | R | 5.00 (5.00) |') and '+0.00 mm, 0/3' in lines[0]
+    assert lines[0].startswith(f'| 1 | {ABLATION[0].change} | R | 5.00 (5.00) |') and lines[0].endswith('| same final errors |')
     assert '-2.00 mm, 3/3, p = ' in lines[1]                           # AL: paired against row 0
     assert '| 0 | the paper\'s system | AL | 20.00 (20.00) |' in text
     assert ablation.plot(results, tmp_path / 'a.png').stat().st_size > 1000
@@ -63,3 +63,10 @@ def test_a_dry_run_of_every_row(tmp_path: Path) -> None:
     again = io.StringIO()
     assert ablation.main(argv, stream=again) == 0
     assert again.getvalue().count('1 already finished, 0 to run') == len(ABLATION) + 1
+    # --table-only runs nothing (no experiment output) and writes the same table, command without the flag.
+    (tmp_path / 'abl' / 'ablation.md').unlink()
+    table_only = io.StringIO()
+    assert ablation.main([*argv, '--table-only'], stream=table_only) == 0
+    assert 'experiment:' not in table_only.getvalue() and (tmp_path / 'abl' / 'ablation.md').read_text() == text
+    assert ablation.main([*argv[:6], '--output', str(tmp_path / 'empty'), '--paper-output', str(tmp_path / 'e1'),
+                          '--ours-output', str(tmp_path / 'e2'), '--table-only'], stream=io.StringIO()) == 1

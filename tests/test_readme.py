@@ -31,6 +31,9 @@ SMALL = {
     "make experiment-paper EXPERIMENT_ARGS='--repetitions 20'": (
         'make experiment-paper EXPERIMENT_ARGS="--repetitions 1 --iterations 2 --methods AL '
         '--jobs 1 --no-record --output {tmp}/experiment-paper"'),
+    "make experiment-ablation EXPERIMENT_ARGS='--repetitions 20'": (
+        'make experiment-ablation EXPERIMENT_ARGS="--repetitions 1 --iterations 2 --methods R --jobs 1 '
+        '--output {tmp}/ablation --paper-output {tmp}/paper --ours-output {tmp}/ours"'),
     'make docs': 'make docs SITE={tmp}/site',
 }
 #: Run by CI, not from inside the suite it starts.

@@ -430,6 +430,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--robot', required=True, help='packaged description name or YAML path')
     ap.add_argument('--seed', type=int, default=1)
     ap.add_argument('--samples', type=int, default=512, help='Sobol samples of the box per estimate')
+    ap.add_argument('--candidates', type=int, default=1024, help='Sobol candidate centres')
     ap.add_argument('--target', type=float, default=0.75, help='visibility the widening stops at')
     ap.add_argument('--max-below', type=float, default=0.03,
                     help='largest fraction of the box below the mount plane z = 0')
@@ -441,7 +442,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     model = load_robot(args.robot, propose_box=False)
     try:
-        proposal = propose_box(model, seed=args.seed, n_samples=args.samples, target=args.target,
+        proposal = propose_box(model, seed=args.seed, n_samples=args.samples, n_candidates=args.candidates,
+                               target=args.target,
                                max_below=args.max_below, max_colliding=args.max_colliding,
                                plane_z=None if args.no_plane else 0.0, collision=not args.no_collision,
                                cameras=tuple(args.camera) if args.camera else None)

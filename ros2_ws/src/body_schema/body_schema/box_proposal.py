@@ -20,7 +20,7 @@ alone, render-free, in two steps:
    colliding fractions at most ``max_below`` and ``max_colliding``.
 
 The estimate is geometric: it ignores the arm hiding its own hand and detector failures, so a
-rendered measurement of the result (``python -m tools.box_proposal --check``) is lower; the
+rendered measurement of the result (``python -m tools.box_proposal --check N``) may differ; the
 figures for the packaged arms are in docs/calibrate-your-arm.md ("Proposing a box").
 
 Command::
@@ -48,8 +48,8 @@ from .noise import view_geometry
 from .occlusion import VisibilityPrior
 from .robot import ArmModel, RobotDescriptionError, load_robot, robot_path
 
-__all__ = ['NoFacingConfigurationError', 'ProposedBoxWarning', 'BoxProposal', 'proposed_box', 'geometric_visibility', 'below_plane', 'propose_box',
-           'box_yaml', 'main']
+__all__ = ['BAND', 'NoFacingConfigurationError', 'ProposedBoxWarning', 'BoxProposal', 'geometric_visibility',
+           'below_plane', 'propose_box', 'proposed_box', 'cache_dir', 'box_yaml', 'describe', 'parser', 'run', 'main']
 
 #: The band the proposed box's visibility should be in, and the target inside it.
 BAND = (0.60, 0.85)
@@ -420,11 +420,13 @@ def describe(proposal: BoxProposal, model: ArmModel, angle_unit: str) -> str:
             f'# seen (geometric estimate) in {100 * proposal.visibility:.1f}% ({per}; {band} the '
             f'{100 * BAND[0]:.0f}-{100 * BAND[1]:.0f}% band),\n'
             f'# {100 * proposal.below_plane:.1f}% of configurations with a link origin or marker below the mount plane,\n'
-            f'# {100 * proposal.colliding:.1f}% refused by the collision check (obstacles, the arm itself).\n'
+            + (f'# {100 * proposal.colliding:.1f}% refused by the collision check (obstacles, the arm itself).\n'
+               if np.isfinite(proposal.colliding) else '# the collision check not run.\n')
             + box_yaml(proposal.box, model.limits, angle_unit))
 
 
-def main(argv: list[str] | None = None) -> int:
+def parser() -> argparse.ArgumentParser:
+    """The command's arguments (``tools.box_proposal`` adds ``--check``)."""
     ap = argparse.ArgumentParser(description='Propose a calibration box (printed as YAML to paste) for a robot '
                                              'description, from the geometric visibility prior.')
     ap.add_argument('--robot', required=True, help='packaged description name or YAML path')
@@ -439,19 +441,26 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--no-plane', action='store_true', help='no mount plane (a humanoid\'s waist frame)')
     ap.add_argument('--no-collision', action='store_true', help='no collision check (the plane alone)')
     ap.add_argument('--camera', action='append', help='camera to score (repeatable; default left, else all)')
-    args = ap.parse_args(argv)
+    return ap
+
+
+def run(args: argparse.Namespace) -> tuple[ArmModel, BoxProposal] | None:
+    """Propose for parsed :func:`parser` arguments and print the box; None (the error printed) if none."""
     model = load_robot(args.robot, propose_box=False)
     try:
         proposal = propose_box(model, seed=args.seed, n_samples=args.samples, n_candidates=args.candidates,
-                               target=args.target,
-                               max_below=args.max_below, max_colliding=args.max_colliding,
+                               target=args.target, max_below=args.max_below, max_colliding=args.max_colliding,
                                plane_z=None if args.no_plane else 0.0, collision=not args.no_collision,
                                cameras=tuple(args.camera) if args.camera else None)
     except (RobotDescriptionError, ValueError) as exc:
         print(f'error: {exc}', file=sys.stderr)
-        return 2
+        return None
     print(describe(proposal, model, angle_unit_of(args.robot)))
-    return 0
+    return model, proposal
+
+
+def main(argv: list[str] | None = None) -> int:
+    return 0 if run(parser().parse_args(argv)) is not None else 2
 
 
 if __name__ == '__main__':

@@ -80,7 +80,7 @@ class BoxProposal:
     per_camera : dict of str to float
         The same per camera.
     below_plane : float
-        Fraction of configurations with a link origin or a marker below the mount plane.
+        Fraction of configurations with a link origin or a marker below the mount plane (NaN: no plane).
     colliding : float
         Fraction refused by the description's collision check (NaN: not checked).
     cameras : tuple of str
@@ -318,8 +318,9 @@ def propose_box(model: ArmModel, *, seed: int = 1, n_samples: int = 512, n_candi
         if not trials:
             break
         _, j, half, vis, per, frac, coll = min(trials, key=lambda t: (t[0], t[1]))
-    return BoxProposal(box_of(centre, half), centre, vis, {n: float(v) for n, v in zip(names, per)}, frac,
-                       coll if checker is not None else float('nan'), names, unit.shape[0])
+    return BoxProposal(box_of(centre, half), centre, vis, {n: float(v) for n, v in zip(names, per)},
+                       frac if plane_z is not None else float('nan'), coll if checker is not None else float('nan'),
+                       names, unit.shape[0])
 
 
 #: Bump when the proposer's choices change: cached proposals of an older version are not reused.
@@ -350,7 +351,8 @@ def proposed_box(model: ArmModel, source: str = '<dict>', angle_unit: str = 'deg
 
     :func:`propose_box` with its defaults, once per description: kept in this process and in
     :func:`cache_dir` (one small JSON file a description), since every node loads the
-    description and a proposal takes seconds. Warns (:class:`ProposedBoxWarning`) with the line to
+    description and a proposal takes seconds. A robot watched by its own eyes (a humanoid, whose
+    root frame is its waist) has no mount plane. Warns (:class:`ProposedBoxWarning`) with the line to
     paste into the YAML; where nothing faces a camera it warns why and returns the joint limits.
     """
     key = _cache_key(model)
@@ -363,10 +365,10 @@ def proposed_box(model: ArmModel, source: str = '<dict>', angle_unit: str = 'deg
         note = f' (cached in {path})'
     except (OSError, ValueError, KeyError, TypeError):
         try:
-            proposal = propose_box(model)
+            proposal = propose_box(model, plane_z=None if model.eyes is not None else 0.0)
         except NoFacingConfigurationError as exc:
             warnings.warn(ProposedBoxWarning(f'{source}: no calibration_box and none could be proposed ({exc}); '
-                                             'the box is the joint limits'), stacklevel=3)
+                                             'the box is the joint limits'), stacklevel=4)
             _CACHE[key] = model.limits.copy()
             return model.limits.copy()
         box = proposal.box
@@ -381,7 +383,7 @@ def proposed_box(model: ArmModel, source: str = '<dict>', angle_unit: str = 'deg
             pass
     _CACHE[key] = box.copy()
     warnings.warn(ProposedBoxWarning(f'{source}: no calibration_box; proposed one{note}. To keep it, paste into '
-                                     f'the description:\n{box_yaml(box, model.limits, angle_unit)}'), stacklevel=3)
+                                     f'the description:\n{box_yaml(box, model.limits, angle_unit)}'), stacklevel=4)
     return box.copy()
 
 
@@ -419,7 +421,8 @@ def describe(proposal: BoxProposal, model: ArmModel, angle_unit: str) -> str:
     return (f'# Proposed by body_schema.box_proposal ({proposal.n_samples} Sobol samples of the box): a marker\n'
             f'# seen (geometric estimate) in {100 * proposal.visibility:.1f}% ({per}; {band} the '
             f'{100 * BAND[0]:.0f}-{100 * BAND[1]:.0f}% band),\n'
-            f'# {100 * proposal.below_plane:.1f}% of configurations with a link origin or marker below the mount plane,\n'
+            + (f'# {100 * proposal.below_plane:.1f}% of configurations with a link origin or marker below the mount '
+               'plane,\n' if np.isfinite(proposal.below_plane) else '# no mount plane,\n')
             + (f'# {100 * proposal.colliding:.1f}% refused by the collision check (obstacles, the arm itself).\n'
                if np.isfinite(proposal.colliding) else '# the collision check not run.\n')
             + box_yaml(proposal.box, model.limits, angle_unit))

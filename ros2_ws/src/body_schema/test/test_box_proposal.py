@@ -122,3 +122,21 @@ def test_a_large_near_marker_is_seen_more_obliquely_than_the_fixed_limit():
     assert fixed < 0.15 and big > 0.6 and small < 0.05     # floor 0.02, ceiling 0.9
     with pytest.raises(ValueError, match='marker_side'):
         VisibilityPrior(cam, marker_side=-1.0)
+
+
+def test_a_robot_watched_by_its_own_eyes_has_no_mount_plane(monkeypatch, tmp_path):
+    monkeypatch.setenv('BODY_SCHEMA_CACHE', str(tmp_path))
+    monkeypatch.setattr(box_proposal, '_CACHE', {})
+    doc = yaml.safe_load(robot_path('icub_right_arm').read_text())
+    del doc['calibration_box']
+    planes = []
+
+    def fake(model, plane_z=0.0, **_):
+        planes.append(plane_z)
+        return BoxProposal(model.limits, model.limits.mean(axis=1), 0.75, {'left': 0.75}, float('nan'), 0.0,
+                           ('left',), 512)
+
+    monkeypatch.setattr(box_proposal, 'propose_box', fake)
+    with pytest.warns(ProposedBoxWarning):
+        robot_from_dict(doc)
+    assert planes == [None]

@@ -213,10 +213,10 @@ class VisibilityPrior:
         The markers' side length [m]. Given, the viewing-angle limit of each marker is where its
         foreshortened width ``fx side cos(phi) / r`` falls to ``min_width_px`` (capped at
         ``max_view_angle_deg``), so a large or near marker is seen more obliquely than a small or
-        far one; None: the fixed ``max_view_angle_deg``. The iCub's 3 cm marker at 0.33 m (the median
-        over its box) in its 320x240 eye (23 px) reaches 7.5 px at 71 deg, about the defaults' limit; the Panda's 8 cm marker
-        at 1.8 m in a 1280x1024 camera (53 px) was detected up to 81 deg (8.8 px) in the rendered
-        measurement, and not at 85 deg (5.7 px).
+        far one; None: the fixed ``max_view_angle_deg``. The iCub's 3 cm marker at 0.33 m (the
+        median over its box) in its 320x240 eye (23 px) reaches 7.5 px at 71 deg, about the
+        defaults' limit; the Panda's 8 cm marker at 1.8 m in a 1280x1024 camera (53 px) was
+        detected up to 81 deg (8.8 px) in the rendered measurement, and not at 85 deg (5.7 px).
     min_width_px : float
         The foreshortened width [px] below which a marker is taken as not detected (with ``marker_side``).
     """

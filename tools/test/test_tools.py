@@ -143,3 +143,13 @@ def test_visibility_fit_bins_every_rendered_configuration(capsys: pytest.Capture
     out = capsys.readouterr().out
     assert 'best fit:' in out
     assert sum(int(r[1]) for r in _rows(out, '| predicted |')) == 10
+
+
+def test_box_proposal_prints_a_box_and_its_rendered_check(capsys: pytest.CaptureFixture[str]) -> None:
+    from tools import box_proposal
+
+    assert box_proposal.main(['--robot', 'ur5e', '--samples', '64', '--candidates', '64', '--no-collision',
+                              '--check', '4']) == 0
+    out = capsys.readouterr().out
+    assert re.search(r'^calibration_box: \[\[.*\]\]$', out, re.M)
+    assert re.search(r'^# rendered \(left, 4 configurations, seed 1\): a marker detected in [\d.]+%', out, re.M)

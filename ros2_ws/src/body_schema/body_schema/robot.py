@@ -409,13 +409,15 @@ def robot_path(name: str) -> Path:
     return path
 
 
-def load_robot(name_or_path: str | Path = 'icub_right_arm') -> ArmModel:
+def load_robot(name_or_path: str | Path = 'icub_right_arm', *, propose_box: bool = True) -> ArmModel:
     """Load and validate a robot description.
 
     Parameters
     ----------
     name_or_path : str or Path
         A packaged robot name (``"icub_right_arm"``) or the path of a YAML description.
+    propose_box : bool
+        Without a ``calibration_box``, propose one (:func:`robot_from_dict`); False: the limits.
 
     Raises
     ------
@@ -430,7 +432,7 @@ def load_robot(name_or_path: str | Path = 'icub_right_arm') -> ArmModel:
         raise RobotDescriptionError(f'{path}: not valid YAML: {exc}') from exc
     if not isinstance(data, dict):
         raise RobotDescriptionError(f'{path}: top level must be a mapping')
-    return robot_from_dict(data, source=str(path))
+    return robot_from_dict(data, source=str(path), propose_box=propose_box)
 
 
 def _check_finite(name: str, arr: NDArray[np.float64]) -> None:
@@ -486,8 +488,14 @@ def _fixed_chain(h0: NDArray[np.float64], blocked: NDArray[np.float64]) -> NDArr
     return kinematics.forward_kinematics(h0, blocked, np.zeros(blocked.shape[0]))
 
 
-def robot_from_dict(data: dict[str, Any], source: str = '<dict>') -> ArmModel:
-    """Validate a parsed description (see :func:`load_robot`) and build the model."""
+def robot_from_dict(data: dict[str, Any], source: str = '<dict>', *, propose_box: bool = True) -> ArmModel:
+    """Validate a parsed description (see :func:`load_robot`) and build the model.
+
+    Without a ``calibration_box`` the box is proposed from the cameras, markers, limits and
+    obstacles (:func:`body_schema.box_proposal.proposed_box`: cached, a warning says what to paste);
+    where it cannot be (no camera or markers, ``propose_box=False``, or nothing faces a camera:
+    warned) the box is the joint limits.
+    """
     where = f'{source}: '
     unit = data.get('angle_unit', 'rad')
     if unit not in ('deg', 'rad'):
@@ -563,7 +571,7 @@ def robot_from_dict(data: dict[str, Any], source: str = '<dict>') -> ArmModel:
     known = {'name', 'root_frame', 'angle_unit', 'H0', 'torso', 'joints', 'calibration_box',
              'eyes', 'camera', 'hand_markers', 'fixed_cameras', 'scenery', 'noise_model',
              'obstacles', 'collision', 'exports', 'urdf', 'convention', 'flange'}
-    return ArmModel(
+    model = ArmModel(
         name=str(data.get('name', Path(source).stem)),
         joint_names=tuple(names),
         dh=dh,
@@ -591,6 +599,11 @@ def robot_from_dict(data: dict[str, Any], source: str = '<dict>') -> ArmModel:
         mdh_first=arm['first'],
         urdf=arm['urdf'],
     )
+    if propose_box and 'calibration_box' not in data and camera is not None and markers:
+        from .box_proposal import proposed_box     # here: scipy and the collision check only when proposing
+
+        model = dataclasses.replace(model, calibration_box=proposed_box(model, source, unit))
+    return model
 
 
 def resolve_file(name: str, relative_to: Path, where: str = 'file') -> Path:

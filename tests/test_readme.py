@@ -25,6 +25,12 @@ DOCS = ROOT / 'docs'
 #: README command (after the generic substitutions) -> the command the test runs ({tmp}: a temporary directory).
 SMALL = {
     'make demo': 'make demo DEMO_ARGS="--iterations 3 --output {tmp}/demo"',
+    'make experiment': (
+        'make experiment EXPERIMENT_ARGS="--repetitions 1 --iterations 2 --methods AL '
+        '--jobs 1 --no-record --output {tmp}/experiment"'),
+    'make experiment-paper': (
+        'make experiment-paper EXPERIMENT_ARGS="--repetitions 1 --iterations 2 --methods AL '
+        '--jobs 1 --no-record --output {tmp}/experiment-paper"'),
     "make experiment EXPERIMENT_ARGS='--repetitions 20'": (
         'make experiment EXPERIMENT_ARGS="--repetitions 1 --iterations 2 --methods AL '
         '--jobs 1 --no-record --output {tmp}/experiment"'),

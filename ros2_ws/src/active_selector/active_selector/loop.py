@@ -78,6 +78,11 @@ class LoopSettings:
     stop_on_unreachable : bool
         The watchdog: a target not reached in time stops the run (phase STOPPED; the node holds
         the arm where it is and exits non-zero) instead of going on with the next one.
+    resend_after : float
+        Seconds (loop clock) after a command with the arm still where it was before the command is
+        sent once more (:meth:`CalibrationLoop.resend_due`): a command lost to late discovery or a
+        dropped connection, not a slow arm (an arm that has started moving is never re-commanded).
+        0 never re-sends.
     """
 
     iterations: int = setting(50, 'Iterations (measurement attempts) of the run', (1, 100000))
@@ -93,6 +98,8 @@ class LoopSettings:
     stop_on_unreachable: bool = setting(True, 'Watchdog: a target not reached within settle_timeout beyond the '
                                               'commanded duration stops the run (the arm is held where it is, the '
                                               'node exits with status 3) instead of going on')
+    resend_after: float = setting(1.0, 'Seconds (sim) after a command with the arm not yet moving before the '
+                                  'command is sent once more (a lost command); 0 never re-sends', (0.0, 1e4))
 
     def __post_init__(self) -> None:
         if self.iterations < 1:
@@ -102,6 +109,8 @@ class LoopSettings:
                 raise ValueError(f'{name} must be > 0, got {getattr(self, name)}')
         if self.settle_time < 0:
             raise ValueError(f'settle_time must be >= 0, got {self.settle_time}')
+        if not self.resend_after >= 0:
+            raise ValueError(f'resend_after must be >= 0, got {self.resend_after}')
         if not 0 < self.speed_scale <= 1:
             raise ValueError(f'speed_scale must be in (0, 1], got {self.speed_scale}')
         if not self.max_joint_speed_deg > 0:
@@ -170,6 +179,8 @@ class CalibrationLoop:
         self.duration = 0.0
         self.stop_reason = ''
         self.t_command = 0.0
+        self.q_command: NDArray[np.float64] | None = None   # where the arm was when commanded
+        self.resent = False
         self.t_settled = 0.0
         self.detected: bool | None = None
         self.bad_frames = 0                 # frames after settling the detector could not judge
@@ -226,6 +237,7 @@ class CalibrationLoop:
         self.duration = float(np.max(np.abs(self.target - self.q))) / self.settings.speed
         self.phase = Phase.MOVING
         self.t_command = self.clock()
+        self.q_command, self.resent = self.q.copy(), False
         self.detected = None
         self.bad_frames, self.bad_reason = 0, ''
         self._check_settled()
@@ -274,6 +286,25 @@ class CalibrationLoop:
         if self.phase is Phase.AWAITING_OUTCOME and self.detected:
             return self._match_outcome()
         return None
+
+    def resend_due(self) -> bool:
+        """Whether to send the current command once more (call periodically while moving).
+
+        True once per iteration, when ``resend_after`` seconds have passed since the command, a joint
+        state stamped after that shows the arm still within ``settle_tolerance`` of where it was
+        commanded from, and the target is elsewhere: the command was most likely never delivered
+        (a subscriber discovered late misses a command published before it matched). The caller
+        publishes ``target`` with ``duration`` again; the watchdog's deadline is unchanged.
+        """
+        s = self.settings
+        if (self.phase is not Phase.MOVING or self.resent or s.resend_after <= 0 or self.q_command is None
+                or self.q is None or self.q_time < self.t_command + s.resend_after):
+            return False
+        tol = s.settle_tolerance
+        if np.max(np.abs(self.q - self.q_command)) > tol or np.max(np.abs(self.q - self.target)) <= tol:
+            return False
+        self.resent = True
+        return True
 
     def tick(self) -> Iteration | None:
         """Enforce the timeouts (call periodically)."""

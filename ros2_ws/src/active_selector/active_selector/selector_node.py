@@ -11,9 +11,10 @@ enforces the timeouts. After ``iterations`` iterations it logs a summary and the
 with status 0. Safety (docs/real_robot_arm.md): no target inside the description's
 collision margins nor behind one (``collision_check``; refusals are counted in each progress
 record), poses of ``poses_file`` first, commands timed at ``speed_scale`` times
-``max_joint_speed_deg``, and a watchdog (``stop_on_unreachable``): a target not reached within
-``settle_timeout`` beyond its commanded duration, or no safe target at all, holds the arm where it
-is and ends the process with status 3. Topics and QoS: the contract
+``max_joint_speed_deg``, a command sent once more when the arm has not started moving
+``resend_after`` seconds after it (a command lost to late discovery), and a watchdog
+(``stop_on_unreachable``): a target not reached within ``settle_timeout`` beyond its commanded
+duration, or no safe target at all, holds the arm where it is and ends the process with status 3. Topics and QoS: the contract
 (:mod:`calibration_interfaces.contract`).
 
 Subscriptions
@@ -47,7 +48,8 @@ repeat_tolerance (StrategySettings); penalty_a, penalty_b, occlusion_length_scal
 occlusion_a0, occlusion_b0, occlusion_prior ('flat' | 'geometric'), occlusion_mode ('paper' |
 'expected' | 'gain'), criterion ('a_optimal' | 'v_optimal'), box_samples (PlannerSettings);
 iterations, settle_tolerance (rad), settle_timeout (s, sim), settle_time (s, sim),
-outcome_timeout (s, sim), max_joint_speed_deg, speed_scale, stop_on_unreachable (LoopSettings);
+outcome_timeout (s, sim), max_joint_speed_deg, speed_scale, stop_on_unreachable, resend_after (s, sim)
+(LoopSettings);
 noise_model ('pose_dependent' | 'constant'), cn_sigma_pos, cn_sigma_rot_deg, pdn_a_pos, pdn_b_pos, pdn_a_rot, pdn_b_rot (NoiseSettings,
 PoseDependentSettings; the pdn_* negative by default: the robot description's fitted law).
 """
@@ -314,6 +316,11 @@ class SelectorNode(Node):
                 return
             self._select_and_command()
         else:
+            if self.loop.resend_due():
+                self.get_logger().warning(f'the arm has not moved {self.loop.settings.resend_after:g} s after the '
+                                          f'command of iteration {self.loop.iteration + 1}: sending it again '
+                                          '(was it delivered? is the arm driver up?)')
+                self._command(self.loop.target, self.loop.duration)
             self._report(self.loop.tick())
         if self.loop.stopped and self.q is not None and not self._held:
             self._held = True

@@ -124,6 +124,41 @@ def test_a_target_not_reached_in_time_is_unreachable_and_the_watchdog_stops_the_
         assert loop.phase is Phase.WAITING and not loop.done
 
 
+def test_a_command_the_arm_never_started_on_is_sent_once_more(loop):
+    loop.settings = LoopSettings(**{**loop.settings.__dict__, 'resend_after': 0.5, 'settle_timeout': 30.0})
+    target = _command(loop)
+    loop.clock.t = 0.4
+    loop.joint_state(0.4, START)
+    assert not loop.resend_due()                                # not yet: the arm may just be starting
+    loop.clock.t = 0.6
+    assert not loop.resend_due()                                # no joint state since the deadline
+    loop.joint_state(0.6, START + 0.1 * TOL)                    # still where it was commanded from
+    assert loop.resend_due()
+    loop.clock.t = 2.0
+    loop.joint_state(2.0, START)
+    assert not loop.resend_due()                                # once per iteration: then the watchdog
+    _settle(loop, target, 2.5)                                  # the second command arrived
+    assert not loop.resend_due()
+
+
+@pytest.mark.parametrize('moved', ['started', 'at the target', 'never'])
+def test_an_arm_that_moves_or_needs_no_motion_is_not_commanded_again(moved):
+    planner = Planner(ARM, PoseDependentNoise(), PlannerSettings(SelectorConfig(strategy='random', seed=4)))
+    lp = CalibrationLoop(planner, LoopSettings(settle_tolerance=TOL, resend_after=0.0 if moved == 'never' else 0.5),
+                         Clock())
+    lp.joint_state(0.0, START)
+    target = lp.select(None, None, None)
+    lp.clock.t = 1.0
+    q = {'started': START + 0.05 * (target - START), 'at the target': target, 'never': START}[moved]
+    lp.joint_state(1.0, q)
+    assert not lp.resend_due()
+
+
+def test_resend_after_must_not_be_negative():
+    with pytest.raises(ValueError, match='resend_after.*-1'):
+        LoopSettings(resend_after=-1.0)
+
+
 @pytest.mark.parametrize('scale', [1.0, 0.25])
 def test_commands_are_timed_at_the_scaled_joint_speed(scale):
     planner = Planner(ARM, PoseDependentNoise(), PlannerSettings(SelectorConfig(strategy='random', seed=4)))

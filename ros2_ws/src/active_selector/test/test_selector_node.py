@@ -230,6 +230,21 @@ def test_a_target_not_reached_in_time_is_unreachable_and_the_watchdog_holds_the_
     assert len(probe.progress) == 1 and len(probe.commands) == 2
 
 
+def test_a_command_the_arm_never_started_on_is_sent_once_more(ros, capfd):
+    # As when the arm driver matched /arm/command after the first command went out: it never moves.
+    probe = Probe(ros, strategy='random', iterations=3, seed=6, resend_after=0.3, settle_timeout=30.0)
+    target = probe.target()
+    q0 = np.mean(ARM.calibration_box, axis=1)
+    ros.spin_until(lambda: probe.joints(q0, ahead=0.4) or len(probe.commands) >= 2, 5.0, 'the command again')
+    np.testing.assert_allclose(probe.commands[1].points[-1].positions, target)
+    assert 'sending it again' in capfd.readouterr().err
+    probe.joints(q0, ahead=1.0)
+    ros.spin_for(0.3)
+    assert len(probe.commands) == 2                       # once: a second silence is the watchdog's
+    probe.settle(target)                                  # the arm goes; the iteration carries on
+    assert probe.node.phase is Phase.AWAITING_OUTCOME
+
+
 @pytest.mark.parametrize('name, value', [('strategy', 'best'), ('noise_model', 'pdn'), ('eye', 'middle')])
 def test_bad_choices_are_refused_by_name(ros, name, value):
     with pytest.raises(ValueError, match=value):

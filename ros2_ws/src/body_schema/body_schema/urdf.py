@@ -26,7 +26,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 __all__ = ['Visual', 'FixedLink', 'FrameTransform', 'dh_chain_urdf', 'chain_transforms', 'model_urdf',
-           'transform_to_xyz_rpy', 'xyz_rpy_to_transform', 'link_pose']
+           'append_fixed_links', 'transform_to_xyz_rpy', 'xyz_rpy_to_transform', 'link_pose']
 
 
 @dataclass(frozen=True)
@@ -330,6 +330,45 @@ def dh_chain_urdf(dh: ArrayLike, joint_names: Sequence[str], limits: ArrayLike, 
         raise ValueError(f'visuals given for unknown links {unknown}')
     xml.append('</robot>\n')
     return ''.join(xml)
+
+
+def append_fixed_links(urdf: str, extra_links: Sequence[FixedLink], link_mass: float = 0.0) -> str:
+    """Any URDF document with more links rigidly attached to its links (e.g. markers on a flange).
+
+    Parameters
+    ----------
+    urdf : str
+        A URDF document (e.g. one read from a file, its joint origins corrected).
+    extra_links : sequence of FixedLink
+        Attached in order (a later one may hang from an earlier one), each on a fixed joint
+        ``<name>_fixed``.
+    link_mass : float
+        If positive, each new link gets this mass and a tiny inertia.
+
+    Returns
+    -------
+    str
+        The document with the links inserted before ``</robot>``.
+
+    Raises
+    ------
+    ValueError
+        If a parent is not a link of the document, or a new name is already one.
+    """
+    import xml.etree.ElementTree as ET
+
+    links = {ln.get('name') for ln in ET.fromstring(urdf).findall('link')}
+    xml, counter = [], [0]
+    for extra in extra_links:
+        if extra.parent not in links:
+            raise ValueError(f'extra link {extra.name!r}: unknown parent {extra.parent!r}')
+        if extra.name in links:
+            raise ValueError(f'extra link {extra.name!r}: the URDF already has a link of that name')
+        links.add(extra.name)
+        xml.append(_link_xml(extra.name, extra.visuals, counter, link_mass))
+        xml.append(_fixed_xml(f'{extra.name}_fixed', extra.parent, extra.name, extra.parent_T_link))
+    cut = urdf.rindex('</robot>')
+    return urdf[:cut] + ''.join(xml) + urdf[cut:]
 
 
 def model_urdf(model: 'ArmModel', **kwargs) -> str:  # noqa: F821 (avoid an import cycle)

@@ -50,7 +50,7 @@ from .urdf import transform_to_xyz_rpy
 
 __all__ = ['UrdfDescriptionError', 'NearlyParallelAxesWarning', 'UrdfJoint', 'UrdfChain', 'DerivedDH',
            'PARALLEL_TOL', 'LENGTH_TOL', 'NEAR_PARALLEL_DEG', 'read_urdf', 'urdf_chain', 'derive_dh',
-           'calibrated_urdf', 'write_calibrated_urdf']
+           'calibrated_tip_link', 'calibrated_urdf', 'model_chain', 'write_calibrated_urdf']
 
 #: ``|z_prev x z|`` below which consecutive axes count as parallel (URDF files write pi/2 to
 #: about 12 digits, 5e-12 rad off).
@@ -404,6 +404,13 @@ def _set_origin(text: str, joint: str, t: NDArray[np.float64]) -> str:
     return text[:m.end() + o.start()] + _origin_xml(t) + text[m.end() + o.end():]
 
 
+def calibrated_tip_link(chain: UrdfChain) -> str:
+    """The link of :func:`calibrated_urdf`'s document that carries the DH tip (``hand @ tool``):
+    ``tip_link``, or the added ``<tip_link>_calibrated`` when ``tip_link`` is the last revolute
+    joint's own child."""
+    return f'{chain.tip_link}_calibrated' if chain.joints[-1].kind in MOVING else chain.tip_link
+
+
 def calibrated_urdf(chain: UrdfChain, derived: DerivedDH, dh: ArrayLike, tool: ArrayLike | None = None,
                     mesh_base: str | Path | None = None) -> str:
     """The chain's URDF with its joint origins corrected to the DH table ``dh``.
@@ -460,8 +467,8 @@ def calibrated_urdf(chain: UrdfChain, derived: DerivedDH, dh: ArrayLike, tool: A
             continue
         text = _set_origin(text, j.name, np.linalg.inv(pose) @ new)
         pose = new
-    if last == len(chain.joints) - 1:
-        name = f'{chain.tip_link}_calibrated'
+    if calibrated_tip_link(chain) != chain.tip_link:
+        name = calibrated_tip_link(chain)
         extra = (f'  <link name="{name}"/>\n  <joint name="{name}_joint" type="fixed">\n'
                  f'    <parent link="{chain.tip_link}"/>\n    <child link="{name}"/>\n'
                  f'    {_origin_xml(np.linalg.inv(pose) @ tip)}\n  </joint>\n')
@@ -482,11 +489,8 @@ def calibrated_urdf(chain: UrdfChain, derived: DerivedDH, dh: ArrayLike, tool: A
     return text
 
 
-def write_calibrated_urdf(model: 'ArmModel', dh: ArrayLike, path: str | Path) -> Path:  # noqa: F821 (import cycle)
-    """Write the URDF of a description read from one (``model.urdf``), corrected to ``dh``.
-
-    Mesh filenames relative to the source URDF are made absolute when ``path`` is in another
-    directory (:func:`calibrated_urdf`'s ``mesh_base``).
+def model_chain(model: 'ArmModel') -> tuple[UrdfChain, DerivedDH]:  # noqa: F821 (import cycle)
+    """The URDF chain of a description read from one (``model.urdf``) and its derived DH.
 
     Raises
     ------
@@ -498,7 +502,21 @@ def write_calibrated_urdf(model: 'ArmModel', dh: ArrayLike, path: str | Path) ->
     chain = urdf_chain(model.urdf.path, model.urdf.base_link, model.urdf.tip_link)
     with warnings.catch_warnings():
         warnings.simplefilter('ignore', NearlyParallelAxesWarning)     # said when the description was loaded
-        derived = derive_dh(chain)
+        return chain, derive_dh(chain)
+
+
+def write_calibrated_urdf(model: 'ArmModel', dh: ArrayLike, path: str | Path) -> Path:  # noqa: F821 (import cycle)
+    """Write the URDF of a description read from one (``model.urdf``), corrected to ``dh``.
+
+    Mesh filenames relative to the source URDF are made absolute when ``path`` is in another
+    directory (:func:`calibrated_urdf`'s ``mesh_base``).
+
+    Raises
+    ------
+    UrdfDescriptionError
+        If the description was not read from a URDF.
+    """
+    chain, derived = model_chain(model)
     out = Path(path)
     same_dir = out.parent.resolve() == model.urdf.path.parent
     out.parent.mkdir(parents=True, exist_ok=True)

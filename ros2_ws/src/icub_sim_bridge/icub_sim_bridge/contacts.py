@@ -2,10 +2,13 @@
 
 Independent of the selector's :class:`body_schema.collision.CollisionModel` (Pinocchio and Coal on
 the nominal table, with margins): a second headless PyBullet client holds the *real* arm (the
-simulator's table) with its drawn geometry as collision shapes and every static body, and Bullet's
-own narrow phase reports contacts (distance <= 0) at each checked configuration. Pairs not
-checked: neighbouring links, the description's ``allowed_pairs``, and pairs Bullet finds touching
-at every probe configuration (a link standing on its table). :class:`ContactMonitor` keeps the
+simulator's table) and every static body, and Bullet's own narrow phase reports contacts
+(distance <= 0) at each checked configuration. The arm's collision geometry is its drawn geometry,
+or for a description read from a URDF that URDF's own ``<collision>`` elements (its joint origins
+corrected to the table, :mod:`icub_sim_bridge.urdf_arm`; links named as in the URDF, a gripper
+beyond the tip included). Pairs not checked: neighbouring links (parent and child for a URDF), the
+description's ``allowed_pairs``, and pairs Bullet finds touching at every probe configuration (a
+link standing on its table, a closed gripper's fingers). :class:`ContactMonitor` keeps the
 count of configurations in contact, the pairs, and the least clearance to a static body seen.
 """
 from __future__ import annotations
@@ -24,6 +27,8 @@ from scipy.spatial.transform import Rotation
 from body_schema.arm_visuals import model_visuals, static_bodies
 from body_schema.robot import ArmModel, Obstacle
 from body_schema.urdf import dh_chain_urdf
+
+from .urdf_arm import load_arm_urdf, write_arm_urdf
 
 __all__ = ['ContactReport', 'ContactMonitor', 'create_static_body']
 
@@ -99,27 +104,45 @@ class ContactMonitor:
         self._tmp = tempfile.mkdtemp(prefix='icub_contacts_')
         self._client = bullet_client.BulletClient(connection_mode=p.DIRECT)
         c = self._client
-        urdf = dh_chain_urdf(table, robot.joint_names, robot.limits, base=robot.base, name=robot.name,
-                             root_link=robot.root_frame, visuals=model_visuals(robot, table), collision=True,
-                             link_mass=0.01)
         path = os.path.join(self._tmp, 'arm.urdf')
-        with open(path, 'w') as f:
-            f.write(urdf)
-        self.arm = c.loadURDF(path, useFixedBase=True, flags=p.URDF_USE_SELF_COLLISION)
-        names = {c.getJointInfo(self.arm, i)[12].decode(): i for i in range(c.getNumJoints(self.arm))}
-        joints = {c.getJointInfo(self.arm, i)[1].decode(): i for i in range(c.getNumJoints(self.arm))}
+        if robot.urdf is None:
+            urdf = dh_chain_urdf(table, robot.joint_names, robot.limits, base=robot.base, name=robot.name,
+                                 root_link=robot.root_frame, visuals=model_visuals(robot, table), collision=True,
+                                 link_mass=0.01)
+            with open(path, 'w') as f:
+                f.write(urdf)
+            self.arm = c.loadURDF(path, useFixedBase=True, flags=p.URDF_USE_SELF_COLLISION)
+        else:
+            from body_schema.urdf_model import model_chain
+
+            chain, derived = model_chain(robot)
+            write_arm_urdf(robot, chain, derived, table, path)
+            self.arm = load_arm_urdf(c, path, robot, derived, flags=p.URDF_USE_SELF_COLLISION)
+        info = [c.getJointInfo(self.arm, i) for i in range(c.getNumJoints(self.arm))]
+        names = {j[12].decode(): i for i, j in enumerate(info)}
+        joints = {j[1].decode(): i for i, j in enumerate(info)}
         self._joints = [joints[j] for j in robot.joint_names]
-        self.link_of = {names[ln]: ln for ln in robot.link_names if ln in names}
+        if robot.urdf is None:
+            self.link_of = {names[ln]: ln for ln in robot.link_names if ln in names}
+            chain_index = {ln: i for i, ln in enumerate(robot.link_names)}
+            neighbours = lambda a, b: abs(chain_index[a] - chain_index[b]) <= 1  # noqa: E731
+        else:
+            # Every link with a collision shape, the base link too (index -1), under its URDF name.
+            self.link_of = {i: n for n, i in names.items() if c.getCollisionShapeData(self.arm, i)}
+            if c.getCollisionShapeData(self.arm, -1):
+                self.link_of[-1] = c.getBodyInfo(self.arm)[0].decode()
+            parent = {j[12].decode(): (c.getBodyInfo(self.arm)[0].decode() if j[16] < 0 else info[j[16]][12].decode())
+                      for j in info}
+            neighbours = lambda a, b: parent.get(a) == b or parent.get(b) == a  # noqa: E731
         self.statics: dict[int, str] = {}
         for o in static_bodies(robot, head_pose):
             body = create_static_body(c, o, visual=False, collision=True)
             if body is not None:
                 self.statics[body] = o.name
-        chain = {ln: i for i, ln in enumerate(robot.link_names)}
         allowed = {frozenset(pair) for pair in robot.collision.allowed_pairs}
         links = list(self.link_of.values())
         self._unchecked = {frozenset((a, b)) for a in links for b in links
-                           if a == b or abs(chain[a] - chain[b]) <= 1} | allowed
+                           if a == b or neighbours(a, b)} | allowed
         self._unchecked |= self._always_touching(probe_configs)
         self.report = ContactReport()
 

@@ -1,11 +1,19 @@
 """The PyBullet world: an arm built from a DH table, an ArUco-marked hand, its cameras.
 
 Pure module (no rclpy). :class:`SimWorld` owns one ``BulletClient`` in DIRECT mode, so several
-worlds coexist in one process. The arm is generated as URDF by :mod:`body_schema.urdf` from the
-DH table it is given (the nominal description's, or a "real robot" that differs from it), with
-geometry that looks like an iCub arm: torso and head for context (static), upper arm, forearm and
-a 7 x 5.5 x 2.5 cm hand whose palm and back carry ArUco markers (textured quads with a white quiet
-zone) exactly where the robot description's ``hand_markers`` says they are.
+worlds coexist in one process. The arm follows the DH table it is given (the nominal
+description's, or a "real robot" that differs from it):
+
+* a description read from a URDF (``urdf:``) is that URDF, meshes and all, with its joint origins
+  corrected to the table (:func:`body_schema.urdf_model.calibrated_urdf`: the "real" robot is the
+  URDF with its joint origins perturbed); the links beyond the tip (a gripper) stay as written,
+  their joints at 0;
+* any other description is generated as URDF by :mod:`body_schema.urdf` with geometry that looks
+  like an iCub arm (:mod:`body_schema.arm_visuals`): upper arm, forearm and a 7 x 5.5 x 2.5 cm hand.
+
+Either way a link ``hand`` (the DH frame after the last joint) carries ArUco markers (textured
+quads with a white quiet zone) exactly where the robot description's ``hand_markers`` says they
+are, and the description's obstacles, scenery and head are drawn around it.
 
 The arm is kinematic: :meth:`SimWorld.set_joint_positions` places it exactly, :meth:`SimWorld.step`
 advances the (gravity-free) physics by one fixed step. :meth:`SimWorld.render` draws an image
@@ -32,6 +40,7 @@ from body_schema.robot import ArmModel, CameraIntrinsics, MarkerPlacement
 from body_schema.urdf import FixedLink, Visual, dh_chain_urdf
 
 from . import camera as cam
+from .urdf_arm import load_arm_urdf, pose_matrix, write_arm_urdf
 
 __all__ = ['HAND_SIZE', 'MarkerSpec', 'SimWorld', 'marker_texture']
 
@@ -180,6 +189,11 @@ class SimWorld:
         self.render_seconds = 0.0
         self._q_set: NDArray[np.float64] | None = None     # joint positions last placed
         self._images: dict[tuple, NDArray[np.uint8]] = {}  # latest image per camera and view
+        self._urdf = None
+        if robot.urdf is not None:
+            from body_schema.urdf_model import model_chain
+
+            self._urdf = model_chain(robot)     # read once: set_dh rewrites it
         self._tmp = tempfile.mkdtemp(prefix='icub_sim_')
         self._client = bullet_client.BulletClient(connection_mode=p.DIRECT)
         try:
@@ -199,22 +213,26 @@ class SimWorld:
         with open(quad, 'w') as f:
             f.write(_grid_obj(MARKER_GRID))
         names = self.robot.joint_names
-        visuals = arm_visuals(self.dh, names, palm=self.palm)
         extra = []
         for spec in self.markers:
             s = spec.quad_side
             extra.append(FixedLink(f'marker_{spec.placement.name}', 'hand', spec.placement.hand_T_marker,
                                    (Visual('mesh', (s, s, 1.0), filename=quad, rgba=(1, 1, 1, 1)),)))
-        urdf = dh_chain_urdf(self.dh, names, self.robot.limits, base=self.robot.base,
-                             name=self.robot.name, root_link=self.robot.root_frame,
-                             visuals=visuals, extra_links=extra, link_mass=0.01)
         # A new file name per build: PyBullet caches what it loaded under a file name, so a rebuilt
         # arm (set_dh) under the old name would come back with the old geometry.
         self._builds = getattr(self, '_builds', 0) + 1
         path = os.path.join(self._tmp, f'arm_{self._builds}.urdf')
-        with open(path, 'w') as f:
-            f.write(urdf)
-        self.body = c.loadURDF(path, useFixedBase=True, flags=p.URDF_USE_INERTIA_FROM_FILE)
+        if self._urdf is None:
+            visuals = arm_visuals(self.dh, names, palm=self.palm)
+            urdf = dh_chain_urdf(self.dh, names, self.robot.limits, base=self.robot.base,
+                                 name=self.robot.name, root_link=self.robot.root_frame,
+                                 visuals=visuals, extra_links=extra, link_mass=0.01)
+            with open(path, 'w') as f:
+                f.write(urdf)
+            self.body = c.loadURDF(path, useFixedBase=True, flags=p.URDF_USE_INERTIA_FROM_FILE)
+        else:
+            write_arm_urdf(self.robot, *self._urdf, self.dh, path, extra)
+            self.body = load_arm_urdf(c, path, self.robot, self._urdf[1])
         self._joint_index: dict[str, int] = {}
         self._link_index: dict[str, int] = {self.robot.root_frame: -1}
         for i in range(c.getNumJoints(self.body)):
@@ -317,10 +335,7 @@ class SimWorld:
         if idx < 0:
             return np.eye(4)
         st = self._client.getLinkState(self.body, idx, computeForwardKinematics=True)
-        t = np.eye(4)
-        t[:3, :3] = np.array(self._client.getMatrixFromQuaternion(st[5])).reshape(3, 3)
-        t[:3, 3] = st[4]
-        return t
+        return pose_matrix(self._client, st[4], st[5])
 
     def hand_pose(self) -> NDArray[np.float64]:
         """Hand frame in root_link, shape (4, 4)."""

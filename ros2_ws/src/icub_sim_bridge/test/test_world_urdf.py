@@ -92,3 +92,26 @@ def test_the_contact_monitor_checks_the_urdfs_collision_geometry() -> None:
     q = next(q for q in uniform_configs(PANDA.limits, 2000, seed=1) if inside(PANDA.flange_pose(q)))
     assert any('table' in pair and pair[0].startswith('panda_') for pair in mon.check(q))
     mon.close()
+
+
+def test_a_base_link_below_the_urdfs_root_is_placed_where_the_description_puts_it(tmp_path) -> None:
+    """base_link need not be the URDF's root (an arm on a mobile base, a robot with a pedestal):
+    the loaded file is placed so that base_link, not the root, lands on the description's base."""
+    import re
+
+    from body_schema.robot import robot_path
+
+    text = robot_path('panda').read_text().replace('base_link: panda_link0', 'base_link: panda_link1')
+    text = re.sub(r'^calibration_box: \[\[-40, 40\], ', 'calibration_box: [', text, flags=re.M)
+    path = tmp_path / 'panda_from_link1.yaml'
+    path.write_text(text)
+    robot = load_robot(path)
+    assert robot.n_joints == 6 and robot.joint_names[0] == 'panda_joint2'
+    dh = perturb_dh(robot.dh, 5, 0.004, np.radians(2.0))
+    real = robot.with_dh(dh)
+    with SimWorld(robot, dh) as w:
+        for q in uniform_configs(robot.limits, 10, seed=2):
+            w.set_joint_positions(q)
+            np.testing.assert_allclose(w.hand_pose(), real.forward_kinematics(q), atol=1e-6)
+            np.testing.assert_allclose(w.link_pose('panda_link1'), robot.base @ np.linalg.inv(
+                model_chain(robot)[1].base), atol=1e-6)

@@ -288,7 +288,8 @@ def noise_for(model: ArmModel) -> tuple[PoseDependentNoise, str]:
     """The description's noise law, or the UR5e's fit (same camera and marker) where it has none."""
     if model.noise_law:
         return PoseDependentNoise.for_robot(model), f'{model.name} noise_model'
-    return PoseDependentNoise.for_robot(load_robot(_FALLBACK_LAW)), f'{_FALLBACK_LAW} noise_model (none in {model.name})'
+    fallback = PoseDependentNoise.for_robot(load_robot(_FALLBACK_LAW))
+    return fallback, f'{_FALLBACK_LAW} noise_model (none in {model.name})'
 
 
 def _sqrt_weights(model: ArmModel, noise: PoseDependentNoise, hand: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -457,7 +458,8 @@ def tilt_study(model: ArmModel, tilts_deg: Sequence[float] = (0.01, 0.1, 1.0)) -
             dh, hy, beta = derive(OriginChain(origins, chain.axes, chain.tool, chain.names))
             hy_angles = hy[:, 2:].copy()
             moved = np.flatnonzero(np.abs(dh[:, 1] - dh0[:, 1]) > 1e-3)
-            rows.append({'tilt_deg': float(tilt), 'about': about, 'pair': f'{model.joint_names[k]}-{model.joint_names[k + 1]}',
+            rows.append({'tilt_deg': float(tilt), 'about': about,
+                         'pair': f'{model.joint_names[k]}-{model.joint_names[k + 1]}',
                          'dh_d_moved': ', '.join(f'{model.joint_names[i]} {dh[i, 1]:.4g}' for i in moved) or 'none',
                          'dh_length': float(np.abs(dh[:, :2] - dh0[:, :2]).max()),
                          'dh_angle': float(np.abs(_wrap_deg(dh[:, 2:] - dh0[:, 2:])).max()),
@@ -475,7 +477,8 @@ def _residual(poses: NDArray[np.float64], observed: NDArray[np.float64], w: NDAr
 def _prior_sd(names: Sequence[str]) -> NDArray[np.float64]:
     """The estimator's initial spread per parameter: ``w / sqrt(12)`` of the paper's widths (angles by name)."""
     angle = ('alpha', 'offset', 'beta', 'rx', 'ry', 'rz')
-    return np.array([PAPER_WIDTH_ANGLE if n.rsplit('.', 1)[1] in angle else PAPER_WIDTH_LENGTH for n in names]) / np.sqrt(12)
+    widths = [PAPER_WIDTH_ANGLE if n.rsplit('.', 1)[1] in angle else PAPER_WIDTH_LENGTH for n in names]
+    return np.array(widths) / np.sqrt(12)
 
 
 def accuracy(model: ArmModel, params: dict[str, Parameterisation], noise: PoseDependentNoise, n_configs: int,

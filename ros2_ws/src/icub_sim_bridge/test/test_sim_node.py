@@ -211,7 +211,9 @@ def test_real_time_factor_one_follows_the_wall_clock(ros) -> None:
     probe = Probe(ros)
     ros.spin_until(lambda: '/clock' in probe.last, 10.0, 'clock')
     s0, w0 = probe.sim_time(), time.monotonic()
-    ros.spin_until(lambda: time.monotonic() - w0 > 1.0, 5.0, 'one wall second')
+    # Three wall seconds: the last /clock received can be a spin late at either end, which on a
+    # loaded machine was 13% of a one-second window (rate 1.13).
+    ros.spin_until(lambda: time.monotonic() - w0 > 3.0, 8.0, 'three wall seconds')
     rate = (probe.sim_time() - s0) / (time.monotonic() - w0)
     assert 0.8 < rate < 1.1
 

@@ -188,15 +188,11 @@ def hayati_links(dh: ArrayLike) -> tuple[int, ...]:
     return tuple(int(k) for k in np.flatnonzero(np.abs(np.sin(alpha)) < np.sin(np.radians(NEAR_PARALLEL_DEG))))
 
 
-def _beta_poses(base: NDArray[np.float64], table: NDArray[np.float64], beta: NDArray[np.float64],
-                q: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Frames (N, L + 1, 4, 4) and hand (N, 4, 4) of ``Rz(q + offset) Tz(d) Tx(a) Rx(alpha) Ry(beta)`` links."""
+def _beta_hand(base: NDArray[np.float64], table: NDArray[np.float64], beta: NDArray[np.float64],
+               q: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Hand (N, 4, 4) of a chain of ``Rz(q + offset) Tz(d) Tx(a) Rx(alpha) Ry(beta)`` links."""
     links = kinematics.dh_link_transforms(table, q) @ _turn([0.0, 1.0, 0.0], beta)
-    frames = np.empty((q.shape[0], len(table) + 1, 4, 4))
-    frames[:, 0] = base
-    for k in range(len(table)):
-        frames[:, k + 1] = frames[:, k] @ links[:, k]
-    return frames, frames[:, -1]
+    return kinematics.compose_frames(base, links)[:, -1]
 
 
 @dataclass(frozen=True)
@@ -234,7 +230,7 @@ def _dh_family(model: ArmModel, hayati: tuple[int, ...], ends: bool) -> Paramete
 
     def poses(x: NDArray[np.float64], q: NDArray[np.float64]) -> NDArray[np.float64]:
         table, beta, b, t = split(np.asarray(x, dtype=float))
-        return _pose(b) @ _beta_poses(model.base, table, beta, q)[1] @ _pose(t)
+        return _pose(b) @ _beta_hand(model.base, table, beta, q) @ _pose(t)
 
     def jacobian(q: NDArray[np.float64]) -> NDArray[np.float64]:
         frames = kinematics.chain_frames(model.base, model.dh, q)

@@ -74,7 +74,7 @@ def test_hayatis_table_moves_the_hand_as_the_tilted_arm(ur5e) -> None:
     tilted = ps.OriginChain(origins, chain.axes, chain.tool, chain.names)
     table, beta, base, tool = ps.derive_hayati(ps.as_urdf_chain(tilted), (1, 2))
     qs = np.random.default_rng(3).uniform(-2, 2, (10, 6))
-    hand = ps._beta_poses(base, table, beta, qs)[1] @ tool
+    hand = ps._beta_hand(base, table, beta, qs) @ tool
     np.testing.assert_allclose(hand, tilted.frames(qs)[1], atol=1e-12)
     assert table[1, 1] == table[2, 1] == 0 and 0 < abs(np.degrees(beta[1])) < 0.5 and abs(beta[2]) < 1e-12
 

@@ -25,6 +25,7 @@ __all__ = [
     'rotation_angle_deg',
     'PARAMS_PER_LINK',
     'dh_link_transforms',
+    'compose_frames',
     'chain_frames',
     'equivalent_table',
     'forward_kinematics',
@@ -118,12 +119,32 @@ def chain_frames(base: ArrayLike, dh: ArrayLike, q: ArrayLike) -> NDArray[np.flo
         Frame 0 is ``base``; frame ``i + 1`` is the frame after link ``i``; the last is the hand.
     """
     links, single = _batched_links(dh, q)
+    frames = compose_frames(base, links)
+    return frames[0] if single else frames
+
+
+def compose_frames(base: ArrayLike, links: ArrayLike) -> NDArray[np.float64]:
+    """Frames of a chain of given link transforms, in the base (root) frame.
+
+    Parameters
+    ----------
+    base : array_like, shape (4, 4)
+    links : array_like, shape (N, L, 4, 4)
+        Link ``i`` maps the frame after link ``i - 1`` to the frame after link ``i`` (e.g.
+        :func:`dh_link_transforms`, or those times an extra rotation per link).
+
+    Returns
+    -------
+    ndarray, shape (N, L + 1, 4, 4)
+        Frame 0 is ``base``; the last is the hand.
+    """
+    links = np.asarray(links, dtype=float)
     n, n_links = links.shape[:2]
     frames = np.empty((n, n_links + 1, 4, 4))
     frames[:, 0] = np.asarray(base, dtype=float)
     for i in range(n_links):
         frames[:, i + 1] = frames[:, i] @ links[:, i]
-    return frames[0] if single else frames
+    return frames
 
 
 def forward_kinematics(base: ArrayLike, dh: ArrayLike, q: ArrayLike) -> NDArray[np.float64]:

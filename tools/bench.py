@@ -21,6 +21,8 @@ BENCHMARKS: dict[str, tuple[str, list[str]]] = {
     'camera_encodings': ('tools.encoding_bench', []),
     'dh_estimator': ('tools.map_bench', []),
     'active_selector': ('tools.loop_bench', []),
+    # The selector's collision check: time per configuration, path and selection; agreement with Bullet.
+    'collision': ('tools.collision_bench', []),
     # Batched candidates + local refinement vs DIRECT-L 1000 on recorded selection states (~5 min).
     'acquisition': ('tools.acquisition_bench', []),
     # 640x480 frames between processes, default Fast DDS vs the shipped shared-memory profile.

@@ -87,6 +87,18 @@ def test_bench_writes_each_section_and_refuses_an_unknown_name(tmp_path: Path, m
     assert written.startswith('## dh_estimator') and written in capsys.readouterr().out
 
 
+def test_collision_bench_times_each_geometry_and_finds_the_simulator_agreeing() -> None:
+    from tools import collision_bench
+
+    text = collision_bench.main(['--robots', 'panda', '--configs', '20', '--selections', '2', '--agreement', '40'])
+    rows = _rows(text, '| robot | geometry |')
+    assert rows[0][1].startswith('drawn from the DH table (built') and rows[1][1].startswith('its URDF (used; built')
+    assert int(rows[1][2]) > int(rows[0][2])          # the gripper and the plate add pairs
+    assert all(float(r[3]) > 0 for r in rows[:2])
+    agreement = _rows(text, '| robot | configurations |')
+    assert agreement[0][0] == 'panda' and agreement[0][-1] == '0'
+
+
 def test_acquisition_bench_compares_every_criterion_mode_and_strategy() -> None:
     from tools import acquisition_bench
 

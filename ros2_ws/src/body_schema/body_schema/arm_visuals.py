@@ -21,7 +21,7 @@ from .urdf import FixedLink, Visual, dh_chain_urdf, xyz_rpy_to_transform
 
 __all__ = ['HAND_SIZE', 'WHITE', 'GREY', 'SKIN', 'LINK_RADIUS', 'HEAD_SIZE', 'segment_visuals', 'hand_visuals',
            'quad_side', 'palm_size', 'arm_visuals', 'model_visuals', 'head_box', 'static_bodies', 'marker_links',
-           'description_urdf']
+           'marker_plates', 'PLATE_THICKNESS', 'description_urdf']
 
 #: Palm box extents in the hand frame [m]: x toward the fingers, y across, z palm thickness.
 HAND_SIZE = (0.07, 0.055, 0.025)
@@ -207,6 +207,26 @@ def marker_links(model: 'ArmModel', thickness: float = 0.001) -> list[FixedLink]
     s = model.marker_side_length
     return [FixedLink(f'marker_{m.name}', 'hand', m.hand_T_marker,
                       (Visual('box', (s, s, thickness), rgba=(0.05, 0.05, 0.05, 1.0)),))
+            for m in model.markers]
+
+
+#: Thickness [m] of the plate a marker is printed on, behind its face (:func:`marker_plates`).
+PLATE_THICKNESS = 0.005
+
+
+def marker_plates(model: 'ArmModel', thickness: float = PLATE_THICKNESS) -> list[FixedLink]:  # noqa: F821
+    """The plates the description's markers are printed on, as links on ``hand`` (collision geometry).
+
+    A description read from a URDF draws no palm (its own links do): a marker held past a gripper
+    is on a plate of its own, which the arm must keep off the table as much as its links. Each
+    plate is a box the size of the printed quad (quiet zone included), ``thickness`` behind the
+    marker's face, on a link ``marker_plate_<name>`` (:func:`marker_links` draws the black square
+    itself, for a robot description's look).
+    """
+    quad = quad_side(model.marker_dictionary, model.marker_side_length)
+    behind = xyz_rpy_to_transform([0.0, 0.0, -thickness / 2], [0, 0, 0])
+    return [FixedLink(f'marker_plate_{m.name}', 'hand', np.asarray(m.hand_T_marker, dtype=float),
+                      (Visual('box', (quad, quad, float(thickness)), behind, WHITE),))
             for m in model.markers]
 
 

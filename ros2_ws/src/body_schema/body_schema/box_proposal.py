@@ -324,7 +324,7 @@ def propose_box(model: ArmModel, *, seed: int = 1, n_samples: int = 512, n_candi
 
 
 #: Bump when the proposer's choices change: cached proposals of an older version are not reused.
-PROPOSER_VERSION = 1
+PROPOSER_VERSION = 2       # 2: a URDF description checked with its own collision meshes
 _CACHE: dict[str, NDArray[np.float64]] = {}
 
 

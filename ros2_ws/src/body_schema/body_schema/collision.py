@@ -6,11 +6,18 @@ does a configuration keep every checked pair of bodies at least ``margin`` apart
 (:meth:`~CollisionModel.path_clear`)? It also measures how far apart they are
 (:meth:`~CollisionModel.distance`, :meth:`~CollisionModel.closest`).
 
-Geometry. The arm is the URDF this project builds from the DH table
-(:func:`body_schema.urdf.dh_chain_urdf`) with each link's drawn primitives
+Geometry. For a description written as a DH table the arm is the URDF this project builds from
+it (:func:`body_schema.urdf.dh_chain_urdf`) with each link's drawn primitives
 (:func:`body_schema.arm_visuals.model_visuals`: a cylinder along each DH link, a ball at the
-joints, the hand's boxes) as its ``<collision>`` elements; :meth:`CollisionModel.from_urdf`
-takes any URDF instead (a description with meshes: its ``<collision>`` elements). The static
+joints, the hand's boxes) as its ``<collision>`` elements. For a description read from a URDF
+(``urdf:``) it is that URDF's own ``<collision>`` geometry, the file's joint origins set to the
+table (:func:`body_schema.urdf_model.arm_urdf`) and its root placed where the description puts
+``base_link``, with the plates its markers are printed on
+(:func:`body_schema.arm_visuals.marker_plates`), as the simulator's contact monitor loads it;
+joints outside the chain (a gripper's fingers) are held at 0. The ``urdf`` argument takes any
+URDF instead. Meshes are checked as their convex hulls (as PyBullet checks a mesh collision
+shape): Coal's margins and distances are exact on convex shapes, and a hull only adds volume.
+The static
 bodies are the description's obstacles, scenery boxes and head
 (:func:`body_schema.arm_visuals.static_bodies`). By default the arm is the description's nominal
 table: on a real robot that is the maker's kinematics, millimetres from the truth, while the
@@ -41,7 +48,7 @@ import pinocchio as pin
 from numpy.typing import ArrayLike, NDArray
 from scipy.stats import qmc
 
-from .arm_visuals import model_visuals, static_bodies
+from .arm_visuals import marker_plates, model_visuals, static_bodies
 from .robot import ArmModel, Obstacle
 from .urdf import dh_chain_urdf
 
@@ -115,8 +122,9 @@ class CollisionModel:
     probe_configs : int
         Configurations over the joint limits (Sobol, seed 0) that find the always-touching pairs.
     urdf : str, optional
-        The arm's URDF with ``<collision>`` elements instead of the DH-drawn primitives (its
-        revolute joints must be the description's, by name).
+        An arm's URDF with ``<collision>`` elements instead of the description's geometry, its root
+        link at the description's root frame: it must have the description's joints, by name (one
+        configuration value each); its other joints are held at 0.
 
     Raises
     ------
@@ -140,23 +148,44 @@ class CollisionModel:
         if not (np.isfinite(self.resolution) and self.resolution > 0):
             raise ValueError(f'path resolution must be finite and > 0 m, got {resolution!r}')
         table = robot.dh if dh is None else np.asarray(dh, dtype=float).reshape(robot.dh.shape)
-        if urdf is None:
+        #: The URDF root link's pose in the description's root frame, (4, 4).
+        self.root_T_model = np.eye(4)
+        if urdf is None and robot.urdf is not None:
+            urdf, self.root_T_model = _description_urdf(robot, table)
+        elif urdf is None:
             urdf = dh_chain_urdf(table, robot.joint_names, robot.limits, base=robot.base, name=robot.name,
                                  root_link=robot.root_frame, visuals=model_visuals(robot, table), collision=True)
         self.urdf = urdf
-        self.model = pin.buildModelFromXML(urdf)
-        missing = [j for j in robot.joint_names if not self.model.existJointName(j)]
-        if missing or self.model.nq != robot.n_joints:
-            raise ValueError(f'the URDF must have exactly the revolute joints {list(robot.joint_names)}; '
-                             f'missing {missing}, {self.model.nq} in all')
+        full = pin.buildModelFromXML(urdf)
+        missing = [j for j in robot.joint_names if not full.existJointName(j)]
+        if missing:
+            raise ValueError(f'the URDF must have the joints {list(robot.joint_names)}; missing {missing}')
+        geometry = pin.buildGeomFromUrdfString(full, urdf, pin.GeometryType.COLLISION)
+        # Neighbours are never checked: consecutive links of the description's chain, and a link and
+        # its parent in the URDF's tree (a gripper's links; read before any joint is held).
+        chain = self.robot.link_names
+        self._neighbours = {frozenset(p) for p in zip(chain, chain[1:])} | {
+            frozenset((f.name, full.frames[full.frames[f.parentFrame].parentFrame].name))
+            for f in full.frames if f.type == pin.FrameType.BODY and f.parentFrame > 0}
+        held = [full.getJointId(n) for n in list(full.names)[1:] if n not in robot.joint_names]
+        self.model, self.geometry = (pin.buildReducedModel(full, geometry, held, pin.neutral(full)) if held
+                                     else (full, geometry))
+        if self.model.nq != robot.n_joints:
+            raise ValueError(f'the URDF must have one configuration value per joint of {list(robot.joint_names)}; '
+                             f'it has {self.model.nq} (a continuous joint has 2)')
         # Our joint order -> Pinocchio's configuration vector.
         self._q_index = np.array([self.model.idx_qs[self.model.getJointId(j)] for j in robot.joint_names])
-        self.geometry = pin.buildGeomFromUrdfString(self.model, urdf, pin.GeometryType.COLLISION)
+        for g in self.geometry.geometryObjects:
+            if isinstance(g.geometry, coal.BVHModelBase):
+                g.geometry.buildConvexHull(True, 'Qt')
+                g.geometry = g.geometry.convex
         # Pinocchio names a link's collision objects '<link>_<k>'.
         self.body_of = [g.name.rsplit('_', 1)[0] for g in self.geometry.geometryObjects]
         self.obstacles = static_bodies(robot)
+        model_T_root = np.linalg.inv(self.root_T_model)
         for o in self.obstacles:
-            self.geometry.addGeometryObject(pin.GeometryObject(o.name, 0, 0, pin.SE3(o.pose[:3, :3], o.pose[:3, 3]),
+            pose = model_T_root @ o.pose
+            self.geometry.addGeometryObject(pin.GeometryObject(o.name, 0, 0, pin.SE3(pose[:3, :3], pose[:3, 3]),
                                                                obstacle_shape(o)))
             self.body_of.append(o.name)
         self.links = tuple(dict.fromkeys(b for b in self.body_of if b not in {o.name for o in self.obstacles}))
@@ -175,7 +204,6 @@ class CollisionModel:
     def _candidate_pairs(self) -> list[tuple[int, int]]:
         """Object pairs of bodies that are neither the same, neighbours, both static, nor allowed."""
         static = {o.name for o in self.obstacles}
-        chain = {name: i for i, name in enumerate(self.robot.link_names)}
         allowed = {frozenset(p) for p in self.robot.collision.allowed_pairs}
         out = []
         for i, a in enumerate(self.body_of):
@@ -183,7 +211,7 @@ class CollisionModel:
                 b = self.body_of[j]
                 if a == b or (a in static and b in static) or frozenset((a, b)) in allowed:
                     continue
-                if a in chain and b in chain and abs(chain[a] - chain[b]) <= 1:
+                if frozenset((a, b)) in self._neighbours:
                     continue
                 out.append((i, j))
         return out
@@ -446,3 +474,23 @@ class CollisionModel:
                 f'{list(self.links)} and static bodies {[o.name for o in self.obstacles]}; allowed: neighbouring '
                 f'links, {[list(p) for p in self.robot.collision.allowed_pairs]} (description), '
                 f'{[list(p) for p in self.auto_allowed]} (closer than the margin in every probe configuration)')
+
+
+def _description_urdf(robot: ArmModel, table: NDArray[np.float64]) -> tuple[str, NDArray[np.float64]]:
+    """The URDF of a description read from one, its joint origins set to ``table`` (L, 4), with
+    its markers' plates, and where its root link lies in the description's root frame, (4, 4).
+
+    The file the simulator's contact monitor loads as the arm (:func:`body_schema.urdf_model.arm_urdf`
+    with :func:`body_schema.arm_visuals.marker_plates`); ``base_link`` lands where the description
+    puts it (``robot.base`` is root -> DH frame 0, the derived base ``base_link`` -> DH frame 0).
+    """
+    from .urdf_model import arm_urdf, model_chain    # here: yourdfpy is loaded for URDF descriptions only
+
+    chain, derived = model_chain(robot)
+    text = arm_urdf(robot, table, marker_plates(robot), chain=(chain, derived), collision=True)
+    root_T_base_link = robot.base @ np.linalg.inv(derived.base)
+    model = pin.buildModelFromXML(text)
+    data = model.createData()
+    pin.framesForwardKinematics(model, data, pin.neutral(model))
+    model_T_base_link = data.oMf[model.getFrameId(chain.base_link)].homogeneous   # base_link below the root
+    return text, root_T_base_link @ np.linalg.inv(model_T_base_link)

@@ -332,7 +332,8 @@ def dh_chain_urdf(dh: ArrayLike, joint_names: Sequence[str], limits: ArrayLike, 
     return ''.join(xml)
 
 
-def append_fixed_links(urdf: str, extra_links: Sequence[FixedLink], link_mass: float = 0.0) -> str:
+def append_fixed_links(urdf: str, extra_links: Sequence[FixedLink], link_mass: float = 0.0,
+                       collision: bool = False) -> str:
     """Any URDF document with more links rigidly attached to its links (e.g. markers on a flange).
 
     Parameters
@@ -344,6 +345,8 @@ def append_fixed_links(urdf: str, extra_links: Sequence[FixedLink], link_mass: f
         ``<name>_fixed``.
     link_mass : float
         If positive, each new link gets this mass and a tiny inertia.
+    collision : bool
+        Also write each new link's boxes, cylinders and spheres as its ``<collision>`` geometry.
 
     Returns
     -------
@@ -365,7 +368,7 @@ def append_fixed_links(urdf: str, extra_links: Sequence[FixedLink], link_mass: f
         if extra.name in links:
             raise ValueError(f'extra link {extra.name!r}: the URDF already has a link of that name')
         links.add(extra.name)
-        xml.append(_link_xml(extra.name, extra.visuals, counter, link_mass))
+        xml.append(_link_xml(extra.name, extra.visuals, counter, link_mass, collision))
         xml.append(_fixed_xml(f'{extra.name}_fixed', extra.parent, extra.name, extra.parent_T_link))
     cut = urdf.rindex('</robot>')
     return urdf[:cut] + ''.join(xml) + urdf[cut:]

@@ -37,6 +37,7 @@ from __future__ import annotations
 import io
 import re
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -46,11 +47,11 @@ from scipy.spatial.transform import Rotation
 
 from . import kinematics
 from .robot import RobotDescriptionError
-from .urdf import transform_to_xyz_rpy
+from .urdf import FixedLink, append_fixed_links, transform_to_xyz_rpy
 
 __all__ = ['UrdfDescriptionError', 'NearlyParallelAxesWarning', 'UrdfJoint', 'UrdfChain', 'DerivedDH',
            'PARALLEL_TOL', 'LENGTH_TOL', 'NEAR_PARALLEL_DEG', 'read_urdf', 'urdf_chain', 'derive_dh',
-           'calibrated_tip_link', 'calibrated_urdf', 'model_chain', 'write_calibrated_urdf']
+           'calibrated_tip_link', 'calibrated_urdf', 'model_chain', 'arm_urdf', 'write_calibrated_urdf']
 
 #: ``|z_prev x z|`` below which consecutive axes count as parallel (URDF files write pi/2 to
 #: about 12 digits, 5e-12 rad off).
@@ -503,6 +504,37 @@ def model_chain(model: 'ArmModel') -> tuple[UrdfChain, DerivedDH]:  # noqa: F821
     with warnings.catch_warnings():
         warnings.simplefilter('ignore', NearlyParallelAxesWarning)     # said when the description was loaded
         return chain, derive_dh(chain)
+
+
+def arm_urdf(model: 'ArmModel', dh: ArrayLike, extra_links: Sequence[FixedLink] = (), *,  # noqa: F821
+             chain: tuple[UrdfChain, DerivedDH] | None = None, link_mass: float = 0.0,
+             collision: bool = False) -> str:
+    """The arm of a description read from a URDF, as the simulator and the collision check load it.
+
+    :func:`calibrated_urdf` of the description at ``dh`` (mesh filenames absolute), with a link
+    ``hand`` (the DH frame after the last joint, where the markers are given) on the tip and
+    ``extra_links`` (e.g. markers, hung from ``hand``); the links beyond the tip (a gripper) as written.
+
+    Parameters
+    ----------
+    model : ArmModel
+        A description with ``urdf``.
+    dh : array_like, shape (L, 4)
+    extra_links : sequence of FixedLink
+    chain : (UrdfChain, DerivedDH), optional
+        :func:`model_chain` of ``model``, if already read.
+    link_mass, collision
+        As :func:`body_schema.urdf.append_fixed_links` (for the added links).
+
+    Raises
+    ------
+    UrdfDescriptionError
+        If the description was not read from a URDF.
+    """
+    urdf_chain_, derived = model_chain(model) if chain is None else chain
+    text = calibrated_urdf(urdf_chain_, derived, dh, model.tool, mesh_base=model.urdf.path.parent)
+    hand = FixedLink('hand', calibrated_tip_link(urdf_chain_), np.linalg.inv(model.tool))
+    return append_fixed_links(text, [hand, *extra_links], link_mass=link_mass, collision=collision)
 
 
 def write_calibrated_urdf(model: 'ArmModel', dh: ArrayLike, path: str | Path) -> Path:  # noqa: F821 (import cycle)

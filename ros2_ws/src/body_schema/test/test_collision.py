@@ -153,3 +153,86 @@ def test_bad_margins_are_refused():
         CollisionModel(UR, -0.1)
     with pytest.raises(ValueError, match='resolution'):
         CollisionModel(UR, resolution=0.0)
+
+
+PANDA = load_robot('panda')
+
+
+def _panda_from_link1(tmp_path):
+    """The Panda with base_link below its URDF's root (an arm on a pedestal): joint 1 outside the chain."""
+    import re
+
+    text = robot_path('panda').read_text().replace('base_link: panda_link0', 'base_link: panda_link1')
+    text = re.sub(r'^calibration_box: \[\[-40, 40\], ', 'calibration_box: [', text, flags=re.M)
+    path = tmp_path / 'panda_from_link1.yaml'
+    path.write_text(text)
+    return load_robot(path)
+
+
+@pytest.mark.parametrize('base_link', ['panda_link0', 'panda_link1'])
+def test_a_urdf_description_is_checked_as_its_urdf_where_the_kinematics_put_it(base_link, tmp_path):
+    """A description read from a URDF is checked with that URDF's collision geometry (the gripper
+    beyond the tip, its fingers held at 0, and the marker's plate), every link where the
+    description's kinematics (its table, its base) put it, base_link below the URDF's root too."""
+    import pinocchio as pin
+
+    from body_schema.sampling import perturb_dh
+
+    robot = PANDA if base_link == 'panda_link0' else _panda_from_link1(tmp_path)
+    dh = perturb_dh(robot.dh, 3, 0.004, np.radians(2.0))
+    c = CollisionModel(robot, dh=dh, probe_configs=8)
+    assert {'panda_link7', 'panda_hand', 'panda_leftfinger', 'panda_rightfinger', 'marker_plate_flange'} <= set(c.links)
+    assert c.model.nq == robot.n_joints
+    real = robot.with_dh(dh)
+    data = c.model.createData()
+    for q in uniform_configs(robot.limits, 20, seed=3):
+        pin.framesForwardKinematics(c.model, data, c._pin_q(q))
+        hand = c.root_T_model @ data.oMf[c.model.getFrameId('hand')].homogeneous
+        np.testing.assert_allclose(hand, real.forward_kinematics(q), atol=1e-9)
+        plate = c.root_T_model @ data.oMf[c.model.getFrameId('marker_plate_flange')].homogeneous
+        np.testing.assert_allclose(plate, real.forward_kinematics(q) @ robot.markers[0].hand_T_marker, atol=1e-9)
+
+
+def test_a_marker_plate_held_past_the_gripper_is_kept_off_the_table():
+    """The Panda's marker plate, 12 cm past the flange: a configuration that puts it (and nothing
+    else) within the margin of the table is refused, with the plate named as the closest pair."""
+    c = CollisionModel(PANDA, probe_configs=16)
+    for q in uniform_configs(PANDA.limits, 3000, seed=5):
+        d = c.pair_distances(q)
+        others = [v - (c.margin if 'table' in k else c.self_margin) for k, v in d.items()
+                  if k != ('marker_plate_flange', 'table')]
+        if d[('marker_plate_flange', 'table')] < c.margin - 0.01 and min(others) > 0.005:
+            break
+    else:
+        pytest.fail('no configuration with the plate alone near the table')
+    assert not c.clear(q)
+    assert c.closest(q).pair == ('marker_plate_flange', 'table')
+
+
+def test_meshes_are_checked_as_their_convex_hulls():
+    """A mesh link is its convex hull (read as a convex shape, the mesh's own triangles missed a
+    wrist link 6 cm inside the table): a link whose vertices lie on both sides of the table's
+    top inside its outline is in contact with it."""
+    import coal
+    import pinocchio as pin
+
+    c = CollisionModel(PANDA, margin=0.0, self_margin=0.0, probe_configs=0)
+    table = next(o for o in c.obstacles if o.name == 'table')
+    half = np.asarray(table.size) / 2
+    data = pin.GeometryData(c.geometry)
+    crossing = 0
+    for q in uniform_configs(PANDA.limits, 300, seed=4):
+        pin.updateGeometryPlacements(c.model, c._data, c.geometry, data, c._pin_q(q))
+        d = c.pair_distances(q)
+        for k, g in enumerate(c.geometry.geometryObjects):
+            if not g.name.startswith('panda_link') or g.name.startswith('panda_link0'):
+                continue
+            assert isinstance(g.geometry, coal.ConvexBase)
+            pts = np.asarray(g.geometry.points())
+            world = pts @ data.oMg[k].rotation.T + data.oMg[k].translation
+            local = (world - table.pose[:3, 3]) @ table.pose[:3, :3]     # in the table's frame
+            inside = np.all(np.abs(local[:, :2]) < half[:2], axis=1)
+            if inside.all() and local[:, 2].min() < -half[2] / 2 and local[:, 2].max() > half[2] / 2:
+                crossing += 1
+                assert d[tuple(sorted((g.name.rsplit('_', 1)[0], 'table')))] <= 0.0, g.name
+    assert crossing >= 5

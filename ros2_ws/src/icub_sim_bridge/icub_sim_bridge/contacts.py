@@ -2,14 +2,16 @@
 
 Independent of the selector's :class:`body_schema.collision.CollisionModel` (Pinocchio and Coal on
 the nominal table, with margins): a second headless PyBullet client holds the *real* arm (the
-simulator's table) and every static body, and Bullet's own narrow phase reports contacts
-(distance <= 0) at each checked configuration. The arm's collision geometry is its drawn geometry,
-or for a description read from a URDF that URDF's own ``<collision>`` elements (its joint origins
-corrected to the table, :mod:`icub_sim_bridge.urdf_arm`; links named as in the URDF, a gripper
-beyond the tip included). Pairs not checked: neighbouring links (parent and child for a URDF), the
-description's ``allowed_pairs``, and pairs Bullet finds touching at every probe configuration (a
-link standing on its table, a closed gripper's fingers). :class:`ContactMonitor` keeps the
-count of configurations in contact, the pairs, and the least clearance to a static body seen.
+simulator's table) and every static body, and Bullet's own narrow phase reports contacts (distance
+<= 0) at each checked configuration. The arm's collision geometry is its drawn geometry, or for a
+description read from a URDF that URDF's own ``<collision>`` elements (its joint origins corrected
+to the table, :mod:`icub_sim_bridge.urdf_arm`; links named as in the URDF, a gripper beyond the tip
+included) with the plates the markers are printed on
+(:func:`body_schema.arm_visuals.marker_plates`). Pairs not checked: neighbouring links (parent and
+child for a URDF), the description's ``allowed_pairs``, and pairs Bullet finds touching at every
+probe configuration (a link standing on its table, a closed gripper's fingers).
+:class:`ContactMonitor` keeps the count of configurations in contact, the pairs, and the least
+clearance to a static body seen.
 """
 from __future__ import annotations
 
@@ -24,7 +26,7 @@ from numpy.typing import ArrayLike
 from pybullet_utils import bullet_client
 from scipy.spatial.transform import Rotation
 
-from body_schema.arm_visuals import model_visuals, static_bodies
+from body_schema.arm_visuals import marker_plates, model_visuals, static_bodies
 from body_schema.robot import ArmModel, Obstacle
 from body_schema.urdf import dh_chain_urdf
 
@@ -116,7 +118,7 @@ class ContactMonitor:
             from body_schema.urdf_model import model_chain
 
             chain, derived = model_chain(robot)
-            write_arm_urdf(robot, chain, derived, table, path)
+            write_arm_urdf(robot, chain, derived, table, path, marker_plates(robot), collision=True)
             self.arm = load_arm_urdf(c, path, robot, derived, flags=p.URDF_USE_SELF_COLLISION)
         info = [c.getJointInfo(self.arm, i) for i in range(c.getNumJoints(self.arm))]
         names = {j[12].decode(): i for i, j in enumerate(info)}

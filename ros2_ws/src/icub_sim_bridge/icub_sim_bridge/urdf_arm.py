@@ -18,23 +18,22 @@ from pybullet_utils import bullet_client
 from scipy.spatial.transform import Rotation
 
 from body_schema.robot import ArmModel
-from body_schema.urdf import FixedLink, append_fixed_links
-from body_schema.urdf_model import DerivedDH, UrdfChain, calibrated_tip_link, calibrated_urdf
+from body_schema.urdf import FixedLink
+from body_schema.urdf_model import DerivedDH, UrdfChain, arm_urdf
 
 __all__ = ['write_arm_urdf', 'load_arm_urdf', 'pose_matrix']
 
 
 def write_arm_urdf(robot: ArmModel, chain: UrdfChain, derived: DerivedDH, dh: ArrayLike, path: str,
-                   extra_links: Sequence[FixedLink] = ()) -> None:
-    """Write the description's URDF corrected to ``dh`` (L, 4), with ``hand`` and ``extra_links``.
+                   extra_links: Sequence[FixedLink] = (), collision: bool = False) -> None:
+    """Write the description's URDF corrected to ``dh`` (L, 4), with ``hand`` and ``extra_links``
+    (:func:`body_schema.urdf_model.arm_urdf`; ``collision``: the extra links' primitives collide too).
 
     Mesh filenames become absolute paths under the source URDF's directory (``path`` is elsewhere),
     so PyBullet finds them (pybullet_data's meshes).
     """
-    text = calibrated_urdf(chain, derived, dh, robot.tool, mesh_base=robot.urdf.path.parent)
-    hand = FixedLink('hand', calibrated_tip_link(chain), np.linalg.inv(robot.tool))
     with open(path, 'w') as f:
-        f.write(append_fixed_links(text, [hand, *extra_links], link_mass=0.01))
+        f.write(arm_urdf(robot, dh, extra_links, chain=(chain, derived), link_mass=0.01, collision=collision))
 
 
 def load_arm_urdf(client: bullet_client.BulletClient, path: str, robot: ArmModel, derived: DerivedDH,

@@ -115,3 +115,30 @@ def test_a_base_link_below_the_urdfs_root_is_placed_where_the_description_puts_i
             np.testing.assert_allclose(w.hand_pose(), real.forward_kinematics(q), atol=1e-6)
             np.testing.assert_allclose(w.link_pose('panda_link1'), robot.base @ np.linalg.inv(
                 model_chain(robot)[1].base), atol=1e-6)
+
+
+@pytest.mark.parametrize('name', ['panda', 'kuka_iiwa'])
+def test_the_selectors_check_and_the_simulators_monitor_see_the_same_arm(name: str) -> None:
+    """Two libraries, one geometry: the selector's check (Pinocchio and Coal) and the simulator's
+    monitor (Bullet) load the same URDF links, gripper and marker plate. Over configurations across
+    the limits, every contact Bullet reports is a pair Coal finds within 2.5 mm (Bullet reports
+    contacts a little before touch), and no pair Coal finds overlapping is free for Bullet."""
+    from body_schema.collision import CollisionModel
+    from icub_sim_bridge.contacts import ContactMonitor
+
+    robot = load_robot(name)
+    dh = perturb_dh(robot.dh, 7, 0.004, np.radians(2.0))
+    mon = ContactMonitor(robot, dh, probe_configs=16)
+    col = CollisionModel(robot, margin=0.0, self_margin=0.0, dh=dh, probe_configs=16)
+    assert {n for pair in col.pairs for n in pair} - {'table'} == set(mon.link_of.values())
+    in_contact = 0
+    for q in uniform_configs(robot.limits, 150, seed=4):
+        contacts = {frozenset(p) for p in mon.check(q)}
+        in_contact += bool(contacts)
+        for pair, d in col.pair_distances(q).items():
+            if frozenset(pair) in contacts:
+                assert d < 0.0025, (pair, d)
+            elif frozenset(pair) not in mon.unchecked:
+                assert d > 0.0, (pair, d)
+    assert in_contact >= 10
+    mon.close()

@@ -9,7 +9,8 @@ states (:meth:`~CalibrationLoop.joint_state`) show when the arm has settled at t
 or camera_info) decides nothing, the loop waits for the next one, and if only such frames come
 before the timeout the iteration ends ``bad_input``, which does not teach the occlusion model;
 if the hand was seen, the estimator's verdict for this configuration
-(:meth:`~CalibrationLoop.estimator_outcome`: ``accepted`` or ``rejected``) ends the iteration.
+(:meth:`~CalibrationLoop.estimator_outcome`: ``accepted``, ``outlier`` or ``rejected``, on an
+image taken after the iteration's command) ends the iteration.
 :meth:`~CalibrationLoop.tick` ends a stuck one: ``unreachable`` when the target is not reached
 within ``settle_timeout``, ``timeout`` when no outcome follows within ``outcome_timeout``. Every
 ended iteration goes to the :class:`~active_selector.planner.Planner` (occlusion model, movement)
@@ -185,8 +186,9 @@ class CalibrationLoop:
         self.detected: bool | None = None
         self.bad_frames = 0                 # frames after settling the detector could not judge
         self.bad_reason = ''
-        # Recent estimator verdicts (outcome, joints, message): a verdict may come before the frame.
-        self._outcomes: deque[tuple[Outcome, NDArray[np.float64], str]] = deque(maxlen=50)
+        # Recent estimator verdicts (outcome, joints, message, image stamp or None): a verdict may
+        # come before the frame.
+        self._outcomes: deque[tuple[Outcome, NDArray[np.float64], str, float | None]] = deque(maxlen=50)
 
     @property
     def done(self) -> bool:
@@ -270,19 +272,26 @@ class CalibrationLoop:
             return True
         return False
 
-    def estimator_outcome(self, outcome: Outcome | str, joints: ArrayLike, message: str = '') -> Iteration | None:
-        """The estimator's verdict on an observation at configuration ``joints`` (L,) [rad].
+    def estimator_outcome(self, outcome: Outcome | str, joints: ArrayLike, message: str = '',
+                          stamp: float | None = None) -> Iteration | None:
+        """The estimator's verdict on an observation at configuration ``joints`` (L,) [rad] of the
+        image stamped ``stamp`` [s, loop clock] (None: not known).
 
-        It ends the iteration when the filter evaluated the observation (accepted, rejected;
-        others, e.g. duplicate, leave the iteration to its timeout), the hand was seen and
-        ``joints`` is the reached configuration (within twice the settle tolerance).
+        It ends the iteration when the filter evaluated the observation (accepted, outlier,
+        rejected; others, e.g. duplicate, leave the iteration to its timeout), the hand was seen,
+        ``joints`` is the reached configuration (within twice the settle tolerance) and the image
+        was taken after the iteration's command. Without the stamp a verdict on the previous
+        attempt's image matches a target closer than that to the previous one (UCSAL's near
+        repeats): the iteration would end before its own image is judged, with the previous
+        verdict, and the next selection would not have its observation.
 
         Raises
         ------
         ValueError
             If ``outcome`` is not an :class:`~calibration_interfaces.outcome.Outcome` value.
         """
-        self._outcomes.append((Outcome(outcome), np.asarray(joints, dtype=float).ravel(), message))
+        self._outcomes.append((Outcome(outcome), np.asarray(joints, dtype=float).ravel(), message,
+                               None if stamp is None else float(stamp)))
         if self.phase is Phase.AWAITING_OUTCOME and self.detected:
             return self._match_outcome()
         return None
@@ -340,9 +349,9 @@ class CalibrationLoop:
             self.reached = self.q.copy()
 
     def _match_outcome(self) -> Iteration | None:
-        for outcome, q, message in reversed(self._outcomes):
-            if not outcome.updated:
-                continue
+        for outcome, q, message, stamp in reversed(self._outcomes):
+            if not outcome.updated or (stamp is not None and stamp < self.t_command):
+                continue                    # not a verdict, or one on an image from before this move
             if q.shape == self.reached.shape and \
                     np.max(np.abs(q - self.reached)) <= 2 * self.settings.settle_tolerance:
                 return self._finish(outcome, message)

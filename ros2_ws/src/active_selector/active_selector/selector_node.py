@@ -300,7 +300,7 @@ class SelectorNode(Node):
         except StatusFormatError as exc:
             self._warn_once('status', f'/body_schema/update_status ignored: {exc}')
             return
-        self._report(self.loop.estimator_outcome(status.outcome, status.joints, msg.message))
+        self._report(self.loop.estimator_outcome(status.outcome, status.joints, msg.message, status.stamp))
 
     # ---------------------------------------------------------------------------------- loop
 

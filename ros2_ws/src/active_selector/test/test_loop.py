@@ -99,6 +99,35 @@ def test_an_empty_frame_after_settling_fails_the_iteration(loop):
     assert len(loop.planner.history) == 1
 
 
+def test_a_verdict_on_an_earlier_image_does_not_end_a_near_repeat():
+    """UCSAL repetition 18 (docs/results/stereo-50): targets 0.1 deg apart, within twice the settle
+    tolerance, so the previous attempt's verdict matched the new reached configuration and ended
+    the iteration before the estimator had judged its image (and the next selection ran without
+    it). A verdict counts only for an image stamped after the iteration's command."""
+    planner = Planner(ARM, PoseDependentNoise(), PlannerSettings(SelectorConfig(strategy='random', seed=4)))
+    lp = CalibrationLoop(planner, LoopSettings(iterations=3, settle_tolerance=TOL, settle_time=0.1), Clock())
+    lp.joint_state(0.0, START)
+    planner.queue_poses([START + 0.1, START + 0.1 + 1.5 * TOL])
+    first = _command(lp)
+    _settle(lp, first)
+    assert lp.markers(1.12, True) is None
+    it = lp.estimator_outcome('accepted', first + 0.5 * TOL, 'mahalanobis 1.4', stamp=1.12)
+    assert it is not None and it.attempt.outcome == 'accepted'
+    lp.clock.t = 1.5
+    second = _command(lp)
+    assert np.max(np.abs(second - first)) < 2 * TOL                    # a near-repeat
+    _settle(lp, second, t=2.0)
+    assert lp.markers(2.12, True) is None, 'ended on the verdict on the image of 1.12 s'
+    it = lp.estimator_outcome('outlier', second + 0.5 * TOL, 'mahalanobis 166.9', stamp=2.12)
+    assert it is not None and it.attempt.outcome == 'outlier' and it.reason == 'mahalanobis 166.9'
+    # Without a stamp (the ROS-free study loop) the joints alone decide, as before.
+    lp.clock.t = 2.5
+    third = lp.select(None, None, None)
+    _settle(lp, third, t=3.0)
+    lp.markers(3.12, True)
+    assert lp.estimator_outcome('accepted', third + 0.5 * TOL) is not None
+
+
 @pytest.mark.parametrize('watchdog', [True, False])
 def test_a_target_not_reached_in_time_is_unreachable_and_the_watchdog_stops_the_run(loop, watchdog):
     loop.settings = LoopSettings(**{**loop.settings.__dict__, 'stop_on_unreachable': watchdog})

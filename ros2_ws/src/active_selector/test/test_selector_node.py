@@ -83,7 +83,10 @@ class Probe:
         self.diagnostics.publish(msg)
 
     def verdict(self, outcome: Outcome, q: np.ndarray) -> None:
-        kv = encode_status(outcome, 0.0, q, 1.0, 0.001, {'updates': 1, 'rejected': 0, 'duplicates': 0})
+        """The estimator's verdict on the attempt frame (stamped as :meth:`frame` stamps it: after the command)."""
+        stamp = self.stamp(ahead=1.0)
+        kv = encode_status(outcome, stamp.sec + stamp.nanosec * 1e-9, q, 1.0, 0.001,
+                           {'updates': 1, 'rejected': 0, 'duplicates': 0})
         self.status.publish(DiagnosticStatus(message='mahalanobis 1.000',
                                              values=[KeyValue(key=k, value=v) for k, v in kv.items()]))
 

@@ -189,6 +189,7 @@ class CalibrationLoop:
         # Recent estimator verdicts (outcome, joints, message, image stamp or None): a verdict may
         # come before the frame.
         self._outcomes: deque[tuple[Outcome, NDArray[np.float64], str, float | None]] = deque(maxlen=50)
+        self._last_now = -np.inf            # the last clock reading (a jump back re-bases the times)
 
     @property
     def done(self) -> bool:
@@ -209,6 +210,7 @@ class CalibrationLoop:
 
     def joint_state(self, t: float, q: ArrayLike) -> None:
         """Joint positions ``q`` (L,) [rad] stamped ``t``; may settle a move."""
+        self._now()
         self.q_prev, self.q, self.q_time = self.q, np.asarray(q, dtype=float), float(t)
         if self.phase is Phase.MOVING:
             self._check_settled()
@@ -238,7 +240,7 @@ class CalibrationLoop:
         self.selection_seconds = sel.seconds
         self.duration = float(np.max(np.abs(self.target - self.q))) / self.settings.speed
         self.phase = Phase.MOVING
-        self.t_command = self.clock()
+        self.t_command = self._now()
         self.q_command, self.resent = self.q.copy(), False
         self.detected = None
         self.bad_frames, self.bad_reason = 0, ''
@@ -251,6 +253,7 @@ class CalibrationLoop:
         Only the first frame at least ``settle_time`` after settling counts; an empty one ends
         the iteration as ``failed``.
         """
+        self._now()
         if self.phase is Phase.AWAITING_OUTCOME and self.detected is None \
                 and t >= self.t_settled + self.settings.settle_time:
             self.detected = bool(detected)
@@ -265,6 +268,7 @@ class CalibrationLoop:
         Counted (returns True) when it is one the iteration waits for; the next judged frame
         decides instead.
         """
+        self._now()
         if self.phase is Phase.AWAITING_OUTCOME and self.detected is None \
                 and t >= self.t_settled + self.settings.settle_time:
             self.bad_frames += 1
@@ -290,6 +294,7 @@ class CalibrationLoop:
         ValueError
             If ``outcome`` is not an :class:`~calibration_interfaces.outcome.Outcome` value.
         """
+        self._now()                         # a jump back re-bases the stored stamps, not this one
         self._outcomes.append((Outcome(outcome), np.asarray(joints, dtype=float).ravel(), message,
                                None if stamp is None else float(stamp)))
         if self.phase is Phase.AWAITING_OUTCOME and self.detected:
@@ -318,7 +323,7 @@ class CalibrationLoop:
     def tick(self) -> Iteration | None:
         """Enforce the timeouts (call periodically)."""
         s = self.settings
-        if self.phase is Phase.MOVING and self.clock() - self.t_command > self.duration + s.settle_timeout:
+        if self.phase is Phase.MOVING and self._now() - self.t_command > self.duration + s.settle_timeout:
             err = np.abs(self.q - self.target)
             j = int(np.argmax(err))
             it = self._finish(Outcome.UNREACHABLE, f'target not reached within {self.duration + s.settle_timeout:.1f} s '
@@ -328,7 +333,7 @@ class CalibrationLoop:
                 self.phase = Phase.STOPPED
                 self.stop_reason = f'watchdog: iteration {it.attempt.iteration}: {it.reason}'
             return it
-        if self.phase is Phase.AWAITING_OUTCOME and self.clock() - self.t_settled > s.outcome_timeout:
+        if self.phase is Phase.AWAITING_OUTCOME and self._now() - self.t_settled > s.outcome_timeout:
             if self.detected is None and self.bad_frames:
                 return self._finish(Outcome.BAD_INPUT, f'{self.bad_frames} frame(s) after settling were bad '
                                     f'input, none judged (last: {self.bad_reason})')
@@ -338,6 +343,23 @@ class CalibrationLoop:
         return None
 
     # ------------------------------------------------------------------------------ transitions
+
+    def _now(self) -> float:
+        """The clock; if it went back since the last reading (a simulator reset), the iteration's
+        times and the stored verdicts' image stamps go back with it, so that the images taken after
+        the jump still count as taken after the command (and timeouts keep their meaning)."""
+        now = self.clock()
+        if now < self._last_now:
+            self._rebase(self._last_now - now)
+        self._last_now = now
+        return now
+
+    def _rebase(self, back: float) -> None:
+        """Move the iteration's times and the stored verdicts' stamps ``back`` seconds earlier."""
+        self.t_command -= back
+        self.t_settled -= back
+        self._outcomes = deque(((o, q, m, None if st is None else st - back) for o, q, m, st in self._outcomes),
+                               maxlen=self._outcomes.maxlen)
 
     def _check_settled(self) -> None:
         if self.q is None or self.q_prev is None or self.q_time < self.t_command:
@@ -358,7 +380,7 @@ class CalibrationLoop:
         return None
 
     def _finish(self, outcome: Outcome, why: str) -> Iteration:
-        now = self.clock()
+        now = self._now()
         settled = self.phase is Phase.AWAITING_OUTCOME
         reached = self.reached if settled else self.q.copy()
         sel = self.selection

@@ -274,3 +274,29 @@ def test_the_loop_is_done_after_its_iterations(loop):
 def test_settings_reject_bad_values(field, value):
     with pytest.raises(ValueError, match=field):
         LoopSettings(**{field: value})
+
+
+def test_a_clock_jumping_back_keeps_the_iterations_own_verdicts():
+    """A simulator reset sends the clock back (tests/test_faults.py: 1.2 s): the iteration's times
+    and the stored verdicts' stamps go back with it, so a verdict on an image taken after the jump
+    (stamped before the command in the old timeline) still ends the iteration, a verdict on the
+    previous attempt's image still does not, and the outcome timeout keeps its length."""
+    planner = Planner(ARM, PoseDependentNoise(), PlannerSettings(SelectorConfig(strategy='random', seed=4)))
+    lp = CalibrationLoop(planner, LoopSettings(iterations=3, settle_tolerance=TOL, settle_time=0.1,
+                                               outcome_timeout=1.0), Clock())
+    lp.joint_state(0.0, START)
+    planner.queue_poses([START + 0.1, START + 0.1 + 1.5 * TOL])
+    first = _command(lp)
+    _settle(lp, first)
+    assert lp.markers(1.12, True) is None
+    assert lp.estimator_outcome('accepted', first + 0.5 * TOL, 'first', stamp=1.12) is not None
+    lp.clock.t = 2.5
+    second = _command(lp)                                        # a near repeat, commanded at 2.5 s
+    _settle(lp, second, t=3.0)
+    assert lp.markers(3.12, True) is None
+    lp.clock.t = 1.92                                            # the jump: 1.2 s back
+    lp.joint_state(1.92, second + 0.5 * TOL)
+    assert lp.tick() is None, 'the outcome timeout counted across the jump'
+    assert lp.estimator_outcome('accepted', second + 0.5 * TOL, 'first', stamp=1.12) is None
+    it = lp.estimator_outcome('accepted', second + 0.5 * TOL, 'after the jump', stamp=2.02)
+    assert it is not None and it.reason == 'after the jump'

@@ -531,9 +531,9 @@ def arm_urdf(model: 'ArmModel', dh: ArrayLike, extra_links: Sequence[FixedLink] 
     UrdfDescriptionError
         If the description was not read from a URDF.
     """
-    urdf_chain_, derived = model_chain(model) if chain is None else chain
-    text = calibrated_urdf(urdf_chain_, derived, dh, model.tool, mesh_base=model.urdf.path.parent)
-    hand = FixedLink('hand', calibrated_tip_link(urdf_chain_), np.linalg.inv(model.tool))
+    source, derived = model_chain(model) if chain is None else chain
+    text = calibrated_urdf(source, derived, dh, model.tool, mesh_base=model.urdf.path.parent)
+    hand = FixedLink('hand', calibrated_tip_link(source), np.linalg.inv(model.tool))
     return append_fixed_links(text, [hand, *extra_links], link_mass=link_mass, collision=collision)
 
 

@@ -25,14 +25,22 @@ def _start(exe: str, domain_id: int, *params: str) -> subprocess.Popen:
     return subprocess.Popen(args, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
-def _interrupt(proc: subprocess.Popen, within: float) -> str:
-    """SIGINT ``proc``; its output; fail if it is still running ``within`` seconds later."""
+#: What CPython prints when a SIGINT lands while it checks the script path at start-up, before any
+#: of the node's code runs; it then goes on as if no signal had come (nothing the node can see).
+SWALLOWED_AT_STARTUP = 'Failed checking if argv[0] is an import path entry'
+
+
+def _interrupt(proc: subprocess.Popen, within: float, swallowed_ok: bool = False) -> str | None:
+    """SIGINT ``proc``; its output; fail if it is still running ``within`` seconds later (None
+    instead if ``swallowed_ok`` and the interpreter itself swallowed the signal at start-up)."""
     proc.send_signal(signal.SIGINT)
     try:
         out, _ = proc.communicate(timeout=within)
     except subprocess.TimeoutExpired:
         proc.kill()
         out, _ = proc.communicate()
+        if swallowed_ok and SWALLOWED_AT_STARTUP in out:
+            return None
         pytest.fail(f'{proc.args[0]} still running {within} s after SIGINT:\n{out[-2000:]}')
     return out
 
@@ -41,9 +49,11 @@ def _interrupt(proc: subprocess.Popen, within: float) -> str:
 def test_a_sigint_at_any_moment_of_the_start_ends_the_node(exe: str) -> None:
     domain_id = 200 + os.getpid() % 30
     for delay in (0.05, 1.0, 3.0):          # importing, building, running (on a loaded 2-core machine)
-        proc = _start(exe, domain_id)
-        time.sleep(delay)                   # the moment of the signal is the point of the test
-        _interrupt(proc, within=5.0)
+        for attempt in range(3):            # again only if CPython, not the node, swallowed the signal
+            proc = _start(exe, domain_id)
+            time.sleep(delay)               # the moment of the signal is the point of the test
+            if _interrupt(proc, within=5.0, swallowed_ok=attempt < 2) is not None:
+                break
 
 
 def test_the_estimator_exports_its_model_on_sigint(tmp_path: Path) -> None:

@@ -20,19 +20,12 @@ import time
 import numpy as np
 
 from body_schema import load_robot, sampling
-from body_schema.arm_visuals import model_visuals
+from body_schema.arm_visuals import drawn_arm_urdf
 from body_schema.collision import CollisionModel
 from body_schema.noise import PoseDependentNoise
 from body_schema.robot import ArmModel
-from body_schema.urdf import dh_chain_urdf
 
 __all__ = ['main']
-
-
-def _drawn(robot: ArmModel) -> str:
-    """The DH-drawn arm's URDF (cylinders, balls, the hand's boxes), as for a description without ``urdf:``."""
-    return dh_chain_urdf(robot.dh, robot.joint_names, robot.limits, base=robot.base, name=robot.name,
-                         root_link=robot.root_frame, visuals=model_visuals(robot, robot.dh), collision=True)
 
 
 def _per_call(fn, items) -> float:
@@ -56,7 +49,7 @@ def _selection_seconds(robot: ArmModel, safety: CollisionModel, n: int) -> tuple
 
 def timing_rows(robot: ArmModel, configs: int, selections: int) -> list[str]:
     """One row per geometry: the DH-drawn links, and for a URDF description its own (the one used)."""
-    urdfs = [('drawn from the DH table', _drawn(robot)), ('its URDF', None)] if robot.urdf else \
+    urdfs = [('drawn from the DH table', drawn_arm_urdf(robot)), ('its URDF', None)] if robot.urdf else \
         [('drawn from the DH table', None)]
     q = sampling.uniform_configs(robot.calibration_box, configs, seed=11)
     rows = []
@@ -67,8 +60,8 @@ def timing_rows(robot: ArmModel, configs: int, selections: int) -> list[str]:
         clear = _per_call(c.clear, list(q))
         paths = _per_call(lambda i: c.path_clear(q[i], q[i + 1]), list(range(min(configs - 1, 100))))
         sel, checks = _selection_seconds(robot, c, selections)
-        used = ' (used' if urdf is None else ' ('
-        rows.append(f'| {robot.name} | {label}{used}{"; " if urdf is None else ""}built in {build:.2f} s) | '
+        used = 'used; ' if urdf is None else ''
+        rows.append(f'| {robot.name} | {label} ({used}built in {build:.2f} s) | '
                     f'{len(c.pairs)} | {clear * 1e3:.3f} | {paths * 1e3:.1f} | {float(np.mean(c.clear(q))):.1%} | '
                     f'{sel:.2f} | {checks:.3f} | x{sel / (sel - checks):.2f} |')
     return rows

@@ -21,7 +21,7 @@ from .urdf import FixedLink, Visual, dh_chain_urdf, xyz_rpy_to_transform
 
 __all__ = ['HAND_SIZE', 'WHITE', 'GREY', 'SKIN', 'LINK_RADIUS', 'HEAD_SIZE', 'segment_visuals', 'hand_visuals',
            'quad_side', 'palm_size', 'arm_visuals', 'model_visuals', 'head_box', 'static_bodies', 'marker_links',
-           'marker_plates', 'PLATE_THICKNESS', 'description_urdf']
+           'marker_plates', 'PLATE_THICKNESS', 'drawn_arm_urdf', 'description_urdf']
 
 #: Palm box extents in the hand frame [m]: x toward the fingers, y across, z palm thickness.
 HAND_SIZE = (0.07, 0.055, 0.025)
@@ -209,6 +209,16 @@ def marker_links(model: 'ArmModel', thickness: float = 0.001) -> list[FixedLink]
                       (Visual('box', (s, s, thickness), rgba=(0.05, 0.05, 0.05, 1.0)),))
             for m in model.markers]
 
+
+
+def drawn_arm_urdf(model: 'ArmModel', dh: ArrayLike | None = None, link_mass: float = 0.0) -> str:  # noqa: F821
+    """The arm of ``dh`` (default: the model's) drawn from its table (:func:`model_visuals`), each
+    link's primitives also its ``<collision>`` geometry: what the collision check and the
+    simulator's contact monitor load for a description without ``urdf:``."""
+    dh = model.dh if dh is None else np.asarray(dh, dtype=float)
+    return dh_chain_urdf(dh, model.joint_names, model.limits, base=model.base, name=model.name,
+                         root_link=model.root_frame, visuals=model_visuals(model, dh), collision=True,
+                         link_mass=link_mass)
 
 #: Thickness [m] of the plate a marker is printed on, behind its face (:func:`marker_plates`).
 PLATE_THICKNESS = 0.005

@@ -48,9 +48,8 @@ import pinocchio as pin
 from numpy.typing import ArrayLike, NDArray
 from scipy.stats import qmc
 
-from .arm_visuals import marker_plates, model_visuals, static_bodies
+from .arm_visuals import drawn_arm_urdf, marker_plates, static_bodies
 from .robot import ArmModel, Obstacle
-from .urdf import dh_chain_urdf
 
 __all__ = ['CollisionModel', 'Closest', 'PathCheck', 'obstacle_shape']
 
@@ -153,8 +152,7 @@ class CollisionModel:
         if urdf is None and robot.urdf is not None:
             urdf, self.root_T_model = _description_urdf(robot, table)
         elif urdf is None:
-            urdf = dh_chain_urdf(table, robot.joint_names, robot.limits, base=robot.base, name=robot.name,
-                                 root_link=robot.root_frame, visuals=model_visuals(robot, table), collision=True)
+            urdf = drawn_arm_urdf(robot, table)
         self.urdf = urdf
         full = pin.buildModelFromXML(urdf)
         missing = [j for j in robot.joint_names if not full.existJointName(j)]

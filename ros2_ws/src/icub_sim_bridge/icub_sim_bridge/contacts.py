@@ -26,9 +26,8 @@ from numpy.typing import ArrayLike
 from pybullet_utils import bullet_client
 from scipy.spatial.transform import Rotation
 
-from body_schema.arm_visuals import marker_plates, model_visuals, static_bodies
+from body_schema.arm_visuals import drawn_arm_urdf, marker_plates, static_bodies
 from body_schema.robot import ArmModel, Obstacle
-from body_schema.urdf import dh_chain_urdf
 
 from .urdf_arm import load_arm_urdf, write_arm_urdf
 
@@ -108,9 +107,7 @@ class ContactMonitor:
         c = self._client
         path = os.path.join(self._tmp, 'arm.urdf')
         if robot.urdf is None:
-            urdf = dh_chain_urdf(table, robot.joint_names, robot.limits, base=robot.base, name=robot.name,
-                                 root_link=robot.root_frame, visuals=model_visuals(robot, table), collision=True,
-                                 link_mass=0.01)
+            urdf = drawn_arm_urdf(robot, table, link_mass=0.01)
             with open(path, 'w') as f:
                 f.write(urdf)
             self.arm = c.loadURDF(path, useFixedBase=True, flags=p.URDF_USE_SELF_COLLISION)

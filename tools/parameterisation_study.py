@@ -59,7 +59,7 @@ from body_schema.noise import PoseDependentNoise, sample_pose
 from body_schema.robot import ArmModel, load_robot
 from body_schema.sampling import PAPER_WIDTH_ANGLE, PAPER_WIDTH_LENGTH, uniform_configs
 from body_schema.urdf_model import (NEAR_PARALLEL_DEG, NearlyParallelAxesWarning, UrdfChain, UrdfJoint,
-                                    _next_row, derive_dh, model_chain)
+                                    derive_dh, model_chain, next_dh_row)
 
 __all__ = ['RANK_TOL', 'TRUE_WIDTHS', 'OriginChain', 'Parameterisation', 'Conditioning', 'origin_chain',
            'hayati_links', 'parameterisations', 'noise_for', 'conditioning', 'as_urdf_chain', 'derive_hayati',
@@ -407,7 +407,7 @@ def derive_hayati(chain: UrdfChain, links: Sequence[int]) -> tuple[NDArray[np.fl
         else:
             # derive_dh's own construction, so the tables differ only in the Hayati links
             anchor = o if tip_x is None else point
-            row = _next_row(frame, point, z_new, anchor, x if tip_x is None else tip_x)[0]
+            row = next_dh_row(frame, point, z_new, anchor, x if tip_x is None else tip_x)[0]
         rows.append(row)
         frame = frame @ kinematics.dh_link_transforms(row[None], np.zeros((1, 1)))[0, 0] @ _turn([0, 1, 0], beta[k])
     return np.array(rows), beta, base, np.linalg.inv(frame) @ tip

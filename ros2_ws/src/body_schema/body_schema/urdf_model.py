@@ -51,7 +51,8 @@ from .urdf import FixedLink, append_fixed_links, transform_to_xyz_rpy
 
 __all__ = ['UrdfDescriptionError', 'NearlyParallelAxesWarning', 'UrdfJoint', 'UrdfChain', 'DerivedDH',
            'PARALLEL_TOL', 'LENGTH_TOL', 'NEAR_PARALLEL_DEG', 'read_urdf', 'urdf_chain', 'derive_dh',
-           'calibrated_tip_link', 'calibrated_urdf', 'model_chain', 'arm_urdf', 'write_calibrated_urdf']
+           'calibrated_tip_link', 'calibrated_urdf', 'model_chain', 'arm_urdf', 'write_calibrated_urdf',
+           'next_dh_row']
 
 #: ``|z_prev x z|`` below which consecutive axes count as parallel (URDF files write pi/2 to
 #: about 12 digits, 5e-12 rad off).
@@ -276,12 +277,30 @@ def _angle(u: NDArray[np.float64], v: NDArray[np.float64], about: NDArray[np.flo
     return float(np.arctan2(np.cross(u, v) @ about, u @ v))
 
 
-def _next_row(frame: NDArray[np.float64], point: NDArray[np.float64], z_new: NDArray[np.float64],
-              anchor: NDArray[np.float64], prefer_x: NDArray[np.float64]) -> tuple[NDArray[np.float64], str]:
+def next_dh_row(frame: NDArray[np.float64], point: NDArray[np.float64], z_new: NDArray[np.float64],
+                anchor: NDArray[np.float64], prefer_x: NDArray[np.float64]) -> tuple[NDArray[np.float64], str]:
     """The DH row from ``frame`` (z on the current axis) to the frame on line (point, z_new).
 
-    Returns the row ``(a, d, alpha, offset)`` and the case (``skew``, ``intersecting``,
-    ``parallel``, ``coincident``).
+    One step of :func:`derive_dh` (also used by ``tools.parameterisation_study`` to build
+    Hayati's rows on the same frames).
+
+    Parameters
+    ----------
+    frame : (4, 4) array
+        The current DH frame, its z on the current joint axis.
+    point, z_new : (3,) arrays
+        A point on the next joint axis and its unit direction.
+    anchor : (3,) array
+        Where the common normal is placed when the axes are parallel (the next joint's origin).
+    prefer_x : (3,) array
+        The x direction to take when the axes coincide (no normal defines it).
+
+    Returns
+    -------
+    row : (4,) array
+        ``(a, d, alpha, offset)``.
+    case : str
+        ``skew``, ``intersecting``, ``parallel`` or ``coincident``.
     """
     o, x, z = frame[:3, 3], frame[:3, 0], frame[:3, 2]
     n = np.cross(z, z_new)
@@ -349,7 +368,7 @@ def derive_dh(chain: UrdfChain) -> DerivedDH:
     targets.append((tip[:3, 3], tip[:3, 2], tip[:3, 0], chain.tip_link))
     for k, (point, z_new, tip_x, name) in enumerate(targets):
         anchor = frame[:3, 3] if tip_x is None else point
-        row, _case = _next_row(frame, point, z_new, anchor, frame[:3, 0] if tip_x is None else tip_x)
+        row, _case = next_dh_row(frame, point, z_new, anchor, frame[:3, 0] if tip_x is None else tip_x)
         s = np.linalg.norm(np.cross(frame[:3, 2], z_new))
         if PARALLEL_TOL <= s < near_sin:
             near.append((moving[k].name, name))

@@ -69,15 +69,21 @@ NODE_MODULES = sorted(m for m in Path(__file__).resolve().parents[1].glob('ros2_
 
 @pytest.mark.parametrize('module', NODE_MODULES, ids=[m.stem for m in NODE_MODULES])
 def test_every_node_module_installs_the_startup_handler_first(module: Path) -> None:
-    """Its first import after ``__future__`` is ``calibration_interfaces.startup``: a signal during
+    """Its first import after ``__future__`` is ``calibration_interfaces.startup``, and the packages
+    imported on the way there (the node's, calibration_interfaces) import nothing: a signal during
     the slow imports that follow is then never lost (what the retry above relies on)."""
+    def imports(tree: ast.Module) -> list[ast.stmt]:
+        return [n for n in tree.body if isinstance(n, (ast.Import, ast.ImportFrom))
+                and not (isinstance(n, ast.ImportFrom) and n.module == '__future__')]
+
     tree = ast.parse(module.read_text())
-    imports = [n for n in tree.body if isinstance(n, (ast.Import, ast.ImportFrom))
-               and not (isinstance(n, ast.ImportFrom) and n.module == '__future__')]
-    first = imports[0]
+    first = imports(tree)[0]
     assert isinstance(first, ast.ImportFrom) and first.module == 'calibration_interfaces' \
         and [a.name for a in first.names] == ['startup'], f'{module.name}: first import {ast.unparse(first)}'
     assert all(isinstance(n, (ast.Expr, ast.Import, ast.ImportFrom)) for n in tree.body[:tree.body.index(first)])
+    interfaces = module.parents[2] / 'calibration_interfaces' / 'calibration_interfaces' / '__init__.py'
+    for init in (module.parent / '__init__.py', interfaces):
+        assert not imports(ast.parse(init.read_text())), f'{init} imports before the handler is installed'
 
 
 def test_the_estimator_exports_its_model_on_sigint(tmp_path: Path) -> None:

@@ -210,7 +210,6 @@ def marker_links(model: 'ArmModel', thickness: float = 0.001) -> list[FixedLink]
             for m in model.markers]
 
 
-
 def drawn_arm_urdf(model: 'ArmModel', dh: ArrayLike | None = None, link_mass: float = 0.0) -> str:  # noqa: F821
     """The arm of ``dh`` (default: the model's) drawn from its table (:func:`model_visuals`), each
     link's primitives also its ``<collision>`` geometry: what the collision check and the
@@ -219,6 +218,7 @@ def drawn_arm_urdf(model: 'ArmModel', dh: ArrayLike | None = None, link_mass: fl
     return dh_chain_urdf(dh, model.joint_names, model.limits, base=model.base, name=model.name,
                          root_link=model.root_frame, visuals=model_visuals(model, dh), collision=True,
                          link_mass=link_mass)
+
 
 #: Thickness [m] of the plate a marker is printed on, behind its face (:func:`marker_plates`).
 PLATE_THICKNESS = 0.005

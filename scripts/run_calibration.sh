@@ -53,6 +53,8 @@ Runs one online calibration of a simulated arm (the iCub right arm by default) a
                     checked against the collision margins, before the strategy takes over
   --speed-scale F   command the joints at F (0-1] times their speed limit (default: 1.0)
   --margin M        collision margin [m] to the obstacles (default: the description's collision.margin)
+  --no-collision-check  do not check targets and paths against the obstacles (simulation only: to measure
+                    what the check costs; the simulator still counts the contacts)
   -h, --help        this text
 
 Before anything starts, the robot description (and a --poses file) is validated with the loader
@@ -77,7 +79,7 @@ robot=icub_right_arm; strategy=al; iterations=50; seed=1; output=results/run; no
 body_change=""; body_change_at=""; camera_error=""; marker_error=""; overwrite=0; resume=""
 image_size=""; image_encoding=rgb8; transport=raw; camera_info=""; record_images=1; domain_id=""; timeout=""; viz=0; viz_port=8080
 max_timeouts=0.2; max_dh_difference=1e-4
-plan_only=0; poses=""; speed_scale=1.0; margin=""
+plan_only=0; poses=""; speed_scale=1.0; margin=""; collision_check=1
 given=()   # run-defining options on the command line (a resumed run keeps its own)
 while [ $# -gt 0 ]; do
   case "$1" in
@@ -105,6 +107,7 @@ while [ $# -gt 0 ]; do
     --transport) transport=$2; shift 2 ;;
     --camera-info) camera_info=$2; shift 2 ;;
     --no-images) record_images=0; given+=("$1"); shift ;;
+    --no-collision-check) collision_check=0; given+=("$1"); shift ;;
     --domain-id) domain_id=$2; shift 2 ;;
     --timeout) timeout=$2; shift 2 ;;
     --max-timeouts) max_timeouts=$2; shift 2 ;;
@@ -160,6 +163,7 @@ timeout=${timeout:-$((60 + 20 * iterations))}
 [[ "$speed_scale" =~ ^(0?\.[0-9]*[1-9][0-9]*|1(\.0*)?)$ ]] || die "--speed-scale must be a fraction in (0, 1], got '$speed_scale'"
 [ -z "$margin" ] || [[ "$margin" =~ ^(0?\.[0-9]+|0|1(\.0*)?)$ ]] || die "--margin must be a distance 0-1 (m), got '$margin'"
 [ -z "$poses" ] || [ "$plan_only" = 0 ] || die "--poses and --plan-only exclude each other"
+[ -z "$margin" ] || [ "$collision_check" = 1 ] || die "--margin and --no-collision-check exclude each other"
 [[ "$speed_scale" == *.* ]] || speed_scale="$speed_scale.0"   # double parameters: '1' would be an integer
 [ -z "$margin" ] || [[ "$margin" == *.* ]] || margin="$margin.0"
 body_change_at=${body_change_at:-$(( (iterations + 1) / 2 + 1 ))}
@@ -185,6 +189,7 @@ if [ "$plan_only" = 1 ]; then
   plan_args=(--robot "$robot" --n "$iterations" --seed "$seed" --output "$output/plan.yaml")
   [ -z "$strategy" ] || plan_args+=(--strategy "$strategy")
   [ -z "$margin" ] || plan_args+=(--margin "$margin")
+  [ "$collision_check" = 1 ] || plan_args+=(--no-collision-check)
   [ -z "$camera_error" ] || plan_args+=(--camera-prior "$camera_error")
   [ -z "$marker_error" ] || plan_args+=(--marker-prior "$marker_error")
   [ "$viz" = 0 ] || plan_args+=(--viz --viz-port "$viz_port")
@@ -330,7 +335,8 @@ else
   bag="$output/calibration.mcap"
   {
     for var in robot strategy iterations seed noise estimator body_change body_change_at camera_error marker_error \
-               image_size image_encoding transport camera_info record_images rtf poses speed_scale margin; do
+               image_size image_encoding transport camera_info record_images rtf poses speed_scale margin \
+               collision_check; do
       printf '%s=%q\n' "$var" "${!var}"
     done
   } >"$output/run.env"
@@ -423,6 +429,7 @@ recording_all || fail recorder "did not subscribe to the other nodes' topics wit
 safety_args=(-p "speed_scale:=$speed_scale")
 [ -z "$poses" ] || safety_args+=(-p "poses_file:=$poses")
 [ -z "$margin" ] || safety_args+=(-p "collision_margin:=$margin")
+[ "$collision_check" = 1 ] || safety_args+=(-p "collision_check:=false")
 start selector active_selector selector_node --ros-args --params-file "$config/selector.yaml" \
   -p "robot:=$robot" -p "strategy:=$strategy" -p "iterations:=$iterations" -p "seed:=$seed" -p "noise_model:=$noise" \
   -p "progress_file:=$output/progress.jsonl" -p "wait_for_recorder:=true" "${resume_args[@]}" \

@@ -79,6 +79,7 @@ def _start(out: Path, *args: str) -> subprocess.Popen:
     (['--transport', 'theora'], '--transport'),
     (['--image-encoding', 'nv24'], '--image-encoding'),
     (['--camera-info', '/nonexistent/ost.yaml'], '--camera-info'),
+    (['--margin', '0.05', '--no-collision-check'], '--no-collision-check'),
 ])
 def test_a_bad_option_exits_2_with_one_line_naming_it_and_starts_nothing(tmp_path: Path, args, named) -> None:
     out = tmp_path / 'run'
@@ -307,6 +308,18 @@ def test_a_bad_pose_list_exits_2_naming_it(tmp_path: Path) -> None:
                           env=_env(), capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2 and proc.stderr.count('\n') == 1, proc.stderr
     assert str(poses) in proc.stderr and 'joint_names' in proc.stderr, proc.stderr
+
+
+def test_plan_only_without_the_collision_check_says_so_and_records_no_margin(tmp_path: Path) -> None:
+    import yaml
+
+    proc = subprocess.run([str(SCRIPT), '--robot', 'ur5e', '--plan-only', '--no-collision-check', '--iterations', '2',
+                           '--output', str(tmp_path)], env=_env(), capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert 'NOT checked against the obstacles' in proc.stdout, proc.stdout
+    plan = yaml.safe_load((tmp_path / 'plan.yaml').read_text())
+    assert len(plan['poses']) == 2 and plan['clearance'] == []
+    assert plan['planned']['margin_m'] is None and plan['planned']['refused'] == 0
 
 
 def test_plan_only_moves_nothing_and_a_run_visits_the_reviewed_poses_first(tmp_path: Path) -> None:

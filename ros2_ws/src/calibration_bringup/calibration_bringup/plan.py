@@ -134,6 +134,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument('--output', type=Path, default=Path('plan.yaml'), help='the pose list to write')
     ap.add_argument('--strategy', choices=('random', 'al', 'ucsal', 'ccsal'), help="the selector's (default: its file's)")
     ap.add_argument('--margin', type=float, help="collision margin [m] (default: the description's)")
+    ap.add_argument('--no-collision-check', action='store_true',
+                    help='do not check the poses against the obstacles (simulation only)')
     ap.add_argument('--start-deg', type=float, nargs='+', help='where the arm is [deg] (default: the box centre)')
     ap.add_argument('--camera-prior', default='', help="the estimator's camera_prior, e.g. '0.02 2'")
     ap.add_argument('--marker-prior', default='', help="the estimator's marker_prior, e.g. '0.005 5'")
@@ -144,9 +146,11 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.n < 1:
         ap.error('--n must be at least 1')
+    if args.no_collision_check and args.margin is not None:
+        ap.error('--margin and --no-collision-check exclude each other')
     plan = make_plan(args.robot, args.n, args.seed, strategy=args.strategy, margin=args.margin,
                      start_deg=args.start_deg, camera_prior=args.camera_prior, marker_prior=args.marker_prior,
-                     initial_guess=args.initial_guess)
+                     initial_guess=args.initial_guess, collision_check=not args.no_collision_check)
     refused = sum(s.refused for s in plan.selections)
     refused_paths = sum(s.refused_paths for s in plan.selections)
     clearances = plan.clearances()
@@ -160,9 +164,10 @@ def main(argv: list[str] | None = None) -> int:
                     comment=f'{len(plan.poses)} poses planned for {plan.model.name} by python -m calibration_bringup.plan '
                             f'(seed {args.seed}); review them before a run visits them (--poses)')
     least = min((c['path_clearance_m'] for c in clearances), default=float('nan'))
-    print(f'plan: {len(plan.poses)} poses for {plan.model.name} in {plan.seconds:.1f} s -> {args.output}; '
-          f'{refused} candidates refused inside a collision margin, {refused_paths} behind one; least clearance '
-          f'along the paths {least * 1e3:.0f} mm')
+    checked = (f'{refused} candidates refused inside a collision margin, {refused_paths} behind one; least '
+               f'clearance along the paths {least * 1e3:.0f} mm' if plan.collision is not None
+               else 'NOT checked against the obstacles (--no-collision-check)')
+    print(f'plan: {len(plan.poses)} poses for {plan.model.name} in {plan.seconds:.1f} s -> {args.output}; {checked}')
     if args.viz:
         from calibration_viz.plan_view import serve
 

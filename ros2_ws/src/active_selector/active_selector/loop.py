@@ -394,7 +394,8 @@ class CalibrationLoop:
                   'reached_deg': np.degrees(a.reached).tolist(), 'movement_deg': a.movement_deg,
                   'selection_s': a.selection_seconds, 'discarded': self.planner.discarded,
                   'move_sim_s': move_s, 'outcome_sim_s': outcome_s, 'sim_time': now,
-                  'source': source, 'refused': a.refused, 'refused_paths': a.refused_paths,
+                  'source': source, 'collision_check': self.planner.safety is not None,
+                  'refused': a.refused, 'refused_paths': a.refused_paths,
                   'safety_s': 0.0 if sel is None else sel.safety_seconds, 'command_s': self.duration}
         self.phase = Phase.DONE if a.iteration >= self.settings.iterations else Phase.WAITING
         return Iteration(a, why, move_s, outcome_s, now, record)

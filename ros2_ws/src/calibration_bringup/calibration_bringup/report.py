@@ -50,12 +50,14 @@ def safety_record(path: str | Path) -> dict[str, object]:
     """What the bag says about safety: the selector's refusals (``/calibration/progress``) and the
     simulator's last contact report (``/diagnostics``, :data:`calibration_interfaces.outcome.CONTACT_DIAGNOSTIC`).
 
-    Keys: ``refused``, ``refused_paths``, ``pose_list`` (iterations from a pose list), ``contacts``,
+    Keys: ``checked`` (False if any selection was made without the collision check; records from
+    before the key count as checked), ``refused``, ``refused_paths``, ``pose_list`` (iterations from a pose list), ``contacts``,
     ``contact_checks``, ``contact_pairs`` (``'a-b': n``), ``min_clearance_m`` (None: no report in the bag).
     """
     from calibration_interfaces.outcome import CONTACT_DIAGNOSTIC, decode_contacts
 
     refused = refused_paths = pose_list = 0
+    checked = True
     contact = None
     for topic, _t, msg in mcap_reader.read_messages(path, ['/calibration/progress', '/diagnostics']):
         if topic == '/calibration/progress':
@@ -63,11 +65,12 @@ def safety_record(path: str | Path) -> dict[str, object]:
             refused += int(r.get('refused', 0))
             refused_paths += int(r.get('refused_paths', 0))
             pose_list += r.get('source') == 'pose_list'
+            checked &= bool(r.get('collision_check', True))
         else:
             for status in msg.status:
                 if status.name == CONTACT_DIAGNOSTIC:
                     contact = decode_contacts({v.key: v.value for v in status.values})
-    return {'refused': refused, 'refused_paths': refused_paths, 'pose_list': pose_list,
+    return {'checked': checked, 'refused': refused, 'refused_paths': refused_paths, 'pose_list': pose_list,
             'contacts': None if contact is None else contact.contacts,
             'contact_checks': None if contact is None else contact.checks,
             'contact_pairs': {} if contact is None else {f'{a}-{b}': n for (a, b), n in contact.pairs.items()},
@@ -123,8 +126,10 @@ def _safety_lines(s: dict[str, object]) -> list[str]:
                 f"{s['contacts']} of {s['contact_checks']} checked configurations in contact"
                 + (f" ({', '.join(f'{k} {v}' for k, v in s['contact_pairs'].items())})" if s['contact_pairs'] else '')
                 + ('' if s['min_clearance_m'] is None else f"; least clearance to an obstacle {1e3 * s['min_clearance_m']:.0f} mm"))
-    return [f"Safety: the selector refused {s['refused']} candidates inside a collision margin and "
-            f"{s['refused_paths']} behind one; {s['pose_list']} targets came from a pose list; simulator: {contacts}.", '']
+    selector = (f"the selector refused {s['refused']} candidates inside a collision margin and "
+                f"{s['refused_paths']} behind one" if s.get('checked', True)
+                else 'the selector did NOT check its targets against the obstacles (collision_check off)')
+    return [f"Safety: {selector}; {s['pose_list']} targets came from a pose list; simulator: {contacts}.", '']
 
 
 def summary_record(ev: Evaluation, title: str, wall_seconds: float | None,

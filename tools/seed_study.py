@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import shlex
 import subprocess
 import sys
@@ -29,7 +30,7 @@ import numpy as np
 
 from body_schema.identifiability import average_nees_band
 
-__all__ = ['parse_seeds', 'summarise', 'main']
+__all__ = ['parse_seeds', 'summarise', 'read_summary', 'main']
 
 ROOT = Path(__file__).resolve().parents[1]
 LAUNCHER = ROOT / 'scripts' / 'run_calibration.sh'
@@ -132,6 +133,35 @@ def summarise(records: dict[int, dict[str, Any]], status: dict[int, int], comman
         lines.append(f'- runs that exited non-zero (see `seed_<S>.log`; 1 is the launcher\'s UNHEALTHY RUN): '
                      f'{failed}')
     return '\n'.join(lines) + '\n'
+
+
+_ROW = re.compile(r'^\| (\d+) \| [^|]* \| (\d+) / (\d+) \| [^|]* \| \*\*([\d.]+) / ([\d.]+)\*\* \| '
+                  r'([\d.]+) / ([\d.]+) \|', re.MULTILINE)
+
+
+def read_summary(text: str) -> dict[int, dict[str, Any]]:
+    """The per-seed rows of a :func:`summarise` table, as partial ``summary.json`` records.
+
+    For a study whose run directories are gone and only its committed ``summary.md`` is left:
+    each seed's ``iterations``, ``outcomes.accepted``, ``final`` and ``information_limit``
+    (position [mm], orientation [deg]), rounded as printed (2 and 3 decimals).
+
+    Raises
+    ------
+    ValueError
+        If ``text`` holds no seed row of that table.
+    """
+    out = {}
+    for m in _ROW.finditer(text):
+        seed, accepted, iterations = (int(v) for v in m.group(1, 2, 3))
+        fmm, fdeg, lmm, ldeg = (float(v) for v in m.group(4, 5, 6, 7))
+        out[seed] = {'iterations': iterations, 'outcomes': {'accepted': accepted},
+                     'final': {'position_mm': fmm, 'orientation_deg': fdeg},
+                     'information_limit': {'position_mm': lmm, 'orientation_deg': ldeg}}
+    if not out:
+        raise ValueError('no seed row of a seed study summary (| seed | exit | accepted / iterations | ...) '
+                         f'in the text beginning {text[:80]!r}')
+    return out
 
 
 def main(argv: Sequence[str] | None = None) -> int:

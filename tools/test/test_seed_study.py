@@ -67,3 +67,25 @@ def test_each_seed_runs_once_and_an_existing_summary_is_kept(tmp_path: Path, mon
     assert "--camera-error '0.02 2'" in text and 'min 0.10, max 0.30' in text
     assert seed_study.main(['--seeds', '1-3', '--output', str(out)]) == 1      # nothing re-run; seed 3 still bad
     assert len(calls.read_text().splitlines()) == 3
+
+
+def test_a_summary_reads_back_as_its_rounded_records() -> None:
+    from tools.seed_study import read_summary
+
+    records = {1: _record(0.6123, 28.0, [0.0] * 6), 7: _record(1.0, 60.0, [0.1] * 6, accepted=41)}
+    back = read_summary(summarise(records, {1: 0, 7: 1}, 'cmd'))
+    assert sorted(back) == [1, 7]
+    assert back[1]['final'] == {'position_mm': 0.61, 'orientation_deg': 0.1}
+    assert back[7]['outcomes'] == {'accepted': 41} and back[7]['iterations'] == 50
+    assert back[7]['information_limit'] == {'position_mm': 0.5, 'orientation_deg': 0.08}
+    with pytest.raises(ValueError, match='no seed row'):
+        read_summary('# a report\n| a | b |\n')
+
+
+def test_the_committed_summaries_read_back_whole() -> None:
+    from tools.seed_study import read_summary
+
+    root = Path(__file__).resolve().parents[2] / 'docs' / 'results'
+    for name in ('ur5e/summary.md', 'safety/ur5e-summary.md', 'safety/icub-summary.md'):
+        back = read_summary((root / name).read_text())
+        assert sorted(back) == list(range(1, 21)), name

@@ -84,9 +84,9 @@ given=()   # run-defining options on the command line (a resumed run keeps its o
 while [ $# -gt 0 ]; do
   case "$1" in
     --robot|--strategy|--iterations|--seed|--noise|--estimator|--body-change|--body-change-at|--image-size|\
-    --camera-error|--marker-error|--poses|--speed-scale|--margin|--image-encoding|--transport|--camera-info)
+    --camera-error|--marker-error|--poses|--speed-scale|--margin|--image-encoding|--transport|--camera-info|--rtf)
       need_value "$@"; given+=("$1") ;;&
-    --output|--resume|--rtf|--domain-id|--timeout|--viz-port|--max-timeouts|--max-dh-difference)
+    --output|--resume|--domain-id|--timeout|--viz-port|--max-timeouts|--max-dh-difference)
       need_value "$@" ;;&
     --robot) robot=$2; shift 2 ;;
     --strategy) strategy=$2; shift 2 ;;

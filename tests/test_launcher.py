@@ -76,6 +76,7 @@ def _start(out: Path, *args: str) -> subprocess.Popen:
     (['--max-timeouts', '1.5'], '--max-timeouts'),
     (['--max-dh-difference', 'small'], '--max-dh-difference'),
     (['--resume', '/nonexistent-run-dir'], '--resume'),
+    (['--rtf', '2', '--resume', '/nonexistent-run-dir'], '--rtf'),   # run.env's rtf would silently win
     (['--transport', 'theora'], '--transport'),
     (['--image-encoding', 'nv24'], '--image-encoding'),
     (['--camera-info', '/nonexistent/ost.yaml'], '--camera-info'),

@@ -10,7 +10,9 @@ Per run directory (``run_calibration.sh --output DIR``, or ``seed_<S>`` of :mod:
   from the configuration the arm had reached (the first from the centre of the box, where the
   simulator starts), re-checked offline with :class:`body_schema.collision.CollisionModel` at
   ``--samples`` evenly spaced points: how many come closer than their margins;
-* **refusals**: the progress records' ``refused`` and ``refused_paths``;
+* **refusals**: the progress records' ``refused`` and ``refused_paths``, or that the selector did
+  not check at all (``run_calibration.sh --no-collision-check``: ``collision_check=0`` in the run's
+  ``run.env``, or ``collision_check: false`` in its records);
 * **selection time**: mean ``selection_s`` and the share of it the checks took (``safety_s``),
   i.e. the ratio to the same search without them;
 * **accuracy**: the report's ``summary.json`` (final flange error).
@@ -49,6 +51,16 @@ def _contacts(bag: Path) -> dict[str, Any] | None:
             'min_clearance_m': last.min_clearance}
 
 
+def _checked(run: Path, records: list[dict[str, Any]]) -> bool:
+    """Whether the selector checked its targets: the launcher's ``run.env`` says, else the records."""
+    env = run / 'run.env'
+    if env.exists():
+        for line in env.read_text().splitlines():
+            if line.startswith('collision_check='):
+                return line.split('=', 1)[1].strip() != '0'
+    return all(r.get('collision_check', True) for r in records)
+
+
 def audit_run(run: Path, collision: CollisionModel, samples: int = 200) -> dict[str, Any]:
     """The audit of one run directory (see the module docstring)."""
     records = [json.loads(line) for line in (run / 'progress.jsonl').read_text().splitlines() if line.strip()]
@@ -68,7 +80,7 @@ def audit_run(run: Path, collision: CollisionModel, samples: int = 200) -> dict[
     sel = np.array([r['selection_s'] for r in records])
     safety = np.array([r.get('safety_s', 0.0) for r in records])
     out: dict[str, Any] = {
-        'run': run.name, 'iterations': len(records),
+        'run': run.name, 'iterations': len(records), 'checked': _checked(run, records),
         'refused': int(sum(r.get('refused', 0) for r in records)),
         'refused_paths': int(sum(r.get('refused_paths', 0) for r in records)),
         'targets_inside_margin': targets_inside, 'paths_inside_margin': paths_inside, 'least_slack_m': least,
@@ -92,14 +104,26 @@ def table(rows: list[dict[str, Any]]) -> str:
         c = r['contacts'] or {}
         lines.append(f"| {r['run']} | {r['iterations']} | {c.get('contacts', 'n/a')} ({c.get('checks', 'n/a')}) | "
                      f"{1e3 * c.get('min_clearance_m', float('nan')):.0f} | {r['targets_inside_margin']} / "
-                     f"{r['paths_inside_margin']} | {r['refused']} / {r['refused_paths']} | {r['selection_s']:.2f} "
+                     f"{r['paths_inside_margin']} | "
+                     + (f"{r['refused']} / {r['refused_paths']}" if r.get('checked', True) else 'not checked')
+                     + f" | {r['selection_s']:.2f} "
                      f"({r['selection_ratio']:.2f}) | {r.get('final_mm', float('nan')):.2f} / "
                      f"{r.get('final_deg', float('nan')):.3f} |")
     finals = np.array([r['final_mm'] for r in rows if 'final_mm' in r])
     contacts = sum((r['contacts'] or {}).get('contacts', 0) for r in rows)
     ratios = np.array([r['selection_ratio'] for r in rows])
+    pairs: dict[str, int] = {}
+    for r in rows:
+        for k, v in ((r['contacts'] or {}).get('pairs') or {}).items():
+            pairs[k] = pairs.get(k, 0) + v
+    touched = sum(bool((r['contacts'] or {}).get('contacts')) for r in rows)
+    unchecked = sum(not r.get('checked', True) for r in rows)
     lines.append('')
-    lines.append(f'{len(rows)} runs: simulator contacts {contacts}; targets inside the margins '
+    lines.append(f'{len(rows)} runs' + (f' ({unchecked} without the collision check)' if unchecked else '')
+                 + f': simulator contacts {contacts}'
+                 + (f' in {touched} runs (configurations per pair: '
+                    f'{", ".join(f"{k} {v}" for k, v in sorted(pairs.items(), key=lambda kv: -kv[1]))})' if contacts else '')
+                 + '; targets inside the margins '
                  f'{sum(r["targets_inside_margin"] for r in rows)}, paths {sum(r["paths_inside_margin"] for r in rows)}; '
                  f'refused {sum(r["refused"] for r in rows)} inside and {sum(r["refused_paths"] for r in rows)} behind '
                  f'a margin; selection time x{ratios.mean():.2f} (median {np.median(ratios):.2f}, '

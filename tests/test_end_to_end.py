@@ -223,8 +223,10 @@ def test_bag_holds_the_robot_model_and_a_tf_tree_on_the_sim_clock(run) -> None:
                 pose[:3, 3] = [p.x, p.y, p.z]
                 edges[t.child_frame_id] = (t.header.frame_id, pose)
     period_ns = int(np.median(np.diff(clocks)))
-    # A joint state is logged at the latest /clock: its own stamp, or the clock period before it.
-    assert lag_ns and max(lag_ns) <= period_ns, (sorted(lag_ns)[-5:], period_ns)
+    # A joint state is logged at the latest /clock: its own stamp, or the clock period before it,
+    # plus the recorder's nanosecond per message already logged in that tick (its arrival order;
+    # a loaded machine delivered one a tick late: period + 1 ns).
+    assert lag_ns and max(lag_ns) <= period_ns + 1000, (sorted(lag_ns)[-5:], period_ns)
     assert '<link name="hand">' in descriptions['/robot_description']
     assert '<link name="estimate/hand">' in descriptions['/body_schema/robot_description']
     for frame in ('hand', 'estimate/hand', 'left_camera_optical_frame', 'right_camera_optical_frame'):

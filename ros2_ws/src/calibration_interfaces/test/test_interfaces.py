@@ -165,6 +165,41 @@ def test_spin_node_runs_the_given_loop_then_destroys_the_node_and_shuts_down(mon
     assert not rclpy.ok()
 
 
+def test_spin_node_takes_a_shutdown_racing_the_wait_set_as_a_stop_and_other_rcl_errors_as_failures(
+        monkeypatch) -> None:
+    import rclpy
+    from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+    from rclpy.node import Node
+
+    from calibration_interfaces.node_util import spin_node
+
+    monkeypatch.setenv('ROS_DOMAIN_ID', '152')
+    destroyed: list[str] = []
+
+    class Probe(Node):
+        def __init__(self) -> None:
+            super().__init__('spin_node_race')
+
+        def destroy_node(self) -> None:
+            destroyed.append(self.get_name())
+            super().destroy_node()
+
+    def shut_then_fail(node: Node) -> None:
+        # What rclpy.spin meets when a SIGINT's shutdown lands after its context check.
+        node.context.shutdown()
+        raise _rclpy.RCLError('failed to initialize wait set: the given context is not valid')
+
+    spin_node(Probe, ['probe'], shut_then_fail)          # a stop: no exception, the node destroyed
+    assert destroyed == ['spin_node_race'] and not rclpy.ok()
+
+    def fail(node: Node) -> None:
+        raise _rclpy.RCLError('failed to take message')
+
+    with pytest.raises(_rclpy.RCLError, match='failed to take'):
+        spin_node(Probe, ['probe'], fail)
+    assert destroyed == ['spin_node_race'] * 2 and not rclpy.ok()
+
+
 # A SIGINT that lands in a finalizer during the imports: Python prints "Exception ignored" and
 # goes on (seen in tests/test_node_signals.py under load: the detector then ran until SIGKILLed).
 _SWALLOWED_SIGINT = """

@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -105,24 +106,23 @@ def table(rows: list[dict[str, Any]]) -> str:
         lines.append(f"| {r['run']} | {r['iterations']} | {c.get('contacts', 'n/a')} ({c.get('checks', 'n/a')}) | "
                      f"{1e3 * c.get('min_clearance_m', float('nan')):.0f} | {r['targets_inside_margin']} / "
                      f"{r['paths_inside_margin']} | "
-                     + (f"{r['refused']} / {r['refused_paths']}" if r.get('checked', True) else 'not checked')
+                     + (f"{r['refused']} / {r['refused_paths']}" if r['checked'] else 'not checked')
                      + f" | {r['selection_s']:.2f} "
                      f"({r['selection_ratio']:.2f}) | {r.get('final_mm', float('nan')):.2f} / "
                      f"{r.get('final_deg', float('nan')):.3f} |")
     finals = np.array([r['final_mm'] for r in rows if 'final_mm' in r])
     contacts = sum((r['contacts'] or {}).get('contacts', 0) for r in rows)
     ratios = np.array([r['selection_ratio'] for r in rows])
-    pairs: dict[str, int] = {}
+    pairs: Counter[str] = Counter()
     for r in rows:
-        for k, v in ((r['contacts'] or {}).get('pairs') or {}).items():
-            pairs[k] = pairs.get(k, 0) + v
+        pairs.update((r['contacts'] or {}).get('pairs') or {})
     touched = sum(bool((r['contacts'] or {}).get('contacts')) for r in rows)
-    unchecked = sum(not r.get('checked', True) for r in rows)
+    unchecked = sum(not r['checked'] for r in rows)
     lines.append('')
     lines.append(f'{len(rows)} runs' + (f' ({unchecked} without the collision check)' if unchecked else '')
                  + f': simulator contacts {contacts}'
                  + (f' in {touched} runs (configurations per pair: '
-                    f'{", ".join(f"{k} {v}" for k, v in sorted(pairs.items(), key=lambda kv: -kv[1]))})' if contacts else '')
+                    f'{", ".join(f"{k} {v}" for k, v in pairs.most_common())})' if contacts else '')
                  + '; targets inside the margins '
                  f'{sum(r["targets_inside_margin"] for r in rows)}, paths {sum(r["paths_inside_margin"] for r in rows)}; '
                  f'refused {sum(r["refused"] for r in rows)} inside and {sum(r["refused_paths"] for r in rows)} behind '

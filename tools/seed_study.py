@@ -30,7 +30,7 @@ import numpy as np
 
 from body_schema.identifiability import average_nees_band
 
-__all__ = ['parse_seeds', 'summarise', 'read_summary', 'main']
+__all__ = ['parse_seeds', 'summarise', 'read_records', 'read_summary', 'main']
 
 ROOT = Path(__file__).resolve().parents[1]
 LAUNCHER = ROOT / 'scripts' / 'run_calibration.sh'
@@ -135,6 +135,27 @@ def summarise(records: dict[int, dict[str, Any]], status: dict[int, int], comman
     return '\n'.join(lines) + '\n'
 
 
+def read_records(directory: Path) -> dict[int, dict[str, Any]]:
+    """Each finished seed's ``summary.json`` in a study's output ``directory`` (``seed_<S>/``), by seed.
+
+    A seed directory without ``summary.json`` (a run that failed before its report) is left out.
+
+    Raises
+    ------
+    ValueError
+        If a ``summary.json`` is not JSON (the message names the file).
+    """
+    records = {}
+    for d in Path(directory).glob('seed_*'):
+        f = d / 'summary.json'
+        if d.name[5:].isdigit() and f.exists():
+            try:
+                records[int(d.name[5:])] = json.loads(f.read_text())
+            except json.JSONDecodeError as exc:
+                raise ValueError(f'{f}: not a summary.json ({exc})') from None
+    return records
+
+
 _ROW = re.compile(r'^\| (\d+) \| [^|]* \| (\d+) / (\d+) \| [^|]* \| \*\*([\d.]+) / ([\d.]+)\*\* \| '
                   r'([\d.]+) / ([\d.]+) \|', re.MULTILINE)
 
@@ -196,8 +217,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             status[seed] = rc
             (out / 'status.json').write_text(json.dumps(status, indent=1))
             print(f'  seed {seed}: exit {rc} in {wall:.0f} s', flush=True)
-    records = {s: json.loads((out / f'seed_{s}' / 'summary.json').read_text())
-               for s in seeds if (out / f'seed_{s}' / 'summary.json').exists()}
+    records = {s: r for s, r in read_records(out).items() if s in seeds}
     missing = [s for s in seeds if s not in records]
     command = 'python -m tools.seed_study ' + shlex.join([*own] + (['--', *extra] if extra else []))
     text = summarise(records, status, command) if records else 'no run produced a summary.json\n'

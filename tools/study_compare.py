@@ -17,7 +17,6 @@ Usage (from the repository root)::
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,7 +25,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 from scipy.stats import wilcoxon
 
-from tools.seed_study import read_summary
+from tools.seed_study import read_records, read_summary
 
 __all__ = ['Study', 'load_study', 'FIGURES', 'compare', 'main']
 
@@ -53,12 +52,7 @@ def load_study(path: Path, name: str | None = None) -> Study:
     if not path.exists():
         raise FileNotFoundError(f'study {path}: no such file or directory')
     if path.is_dir():
-        records = {}
-        for f in path.glob('seed_*/summary.json'):
-            try:
-                records[int(f.parent.name.removeprefix('seed_'))] = json.loads(f.read_text())
-            except ValueError:
-                continue                    # seed_<not a number>: not a seed study's run directory
+        records = read_records(path)
         if not records:
             raise ValueError(f'study {path}: no seed_<S>/summary.json in it (a tools.seed_study output directory?)')
     else:

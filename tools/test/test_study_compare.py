@@ -77,6 +77,11 @@ def test_bad_inputs_exit_2_naming_them(tmp_path: Path, capsys) -> None:
     base = _study_dir(tmp_path / 'base', {1: 0.3})
     assert main([str(base), str(other), '--names', 'b', 'o']) == 2
     assert "study 'o' shares no seed with the baseline 'b'" in capsys.readouterr().err
+    (base / 'seed_2').mkdir()
+    (base / 'seed_2' / 'summary.json').write_text('{"final": ')     # a run killed while writing it
+    assert main([str(base), str(other)]) == 2
+    assert f"{base / 'seed_2' / 'summary.json'}: not a summary.json" in capsys.readouterr().err
+    (base / 'seed_2' / 'summary.json').unlink()
     with pytest.raises(SystemExit):
         main([str(base), str(other), '--names', 'only-one'])
     with pytest.raises(ValueError, match='at least one other study'):

@@ -127,7 +127,7 @@ def _safety_lines(s: dict[str, object]) -> list[str]:
                 + (f" ({', '.join(f'{k} {v}' for k, v in s['contact_pairs'].items())})" if s['contact_pairs'] else '')
                 + ('' if s['min_clearance_m'] is None else f"; least clearance to an obstacle {1e3 * s['min_clearance_m']:.0f} mm"))
     selector = (f"the selector refused {s['refused']} candidates inside a collision margin and "
-                f"{s['refused_paths']} behind one" if s.get('checked', True)
+                f"{s['refused_paths']} behind one" if s['checked']
                 else 'the selector did NOT check its targets against the obstacles (collision_check off)')
     return [f"Safety: {selector}; {s['pose_list']} targets came from a pose list; simulator: {contacts}.", '']
 

@@ -46,8 +46,9 @@ class PlannerSettings:
     """
 
     selector: SelectorConfig = SelectorConfig()
-    penalty_a: float = setting(0.05, 'Weight a of the a*arctan(b*p_x) penalty on hands behind the body',
-                               (0.0, 1e6))
+    penalty_a: float = setting(0.05, 'Weight a of the a*arctan(b*p_x) penalty on hands behind the body '
+                               '(applied only where the robot description has a body: selection.body_penalty, '
+                               'default on with eyes, off with fixed cameras)', (0.0, 1e6))
     penalty_b: float = setting(10.0, 'Slope b of the arctan penalty [1/m]', (0.0, 1e6))
     occlusion_length_scale: float = setting(0.5, 'Occlusion kernel length scale (normalised joints)', (1e-4, 10.0))
     occlusion_a0: float = setting(1.0, 'Beta prior successes', (1e-6, 1e6))
@@ -160,6 +161,12 @@ class Planner:
     def discarded(self) -> int:
         return sum(not a.detected for a in self.history)
 
+    @property
+    def penalty_a(self) -> float:
+        """The penalty weight the cost uses: the setting's, or 0 where the description has no body to be
+        behind (``ArmModel.body_penalty``: the sign of the root frame's x means nothing there)."""
+        return self.settings.penalty_a if self.model.body_penalty else 0.0
+
     def cost(self, dh: ArrayLike, P: ArrayLike, camera_pose: ArrayLike) -> AcquisitionCost:  # noqa: N803
         """The acquisition cost for the current estimate.
 
@@ -176,7 +183,7 @@ class Planner:
         cost = AcquisitionCost(self.model.base, np.asarray(dh, dtype=float).reshape(self.model.dh.shape),
                                P, self.noise, np.asarray(camera_pose, dtype=float),
                                self.model.markers, occlusion=self.occlusion, visibility=self.visibility,
-                               penalty_a=s.penalty_a, penalty_b=s.penalty_b, occlusion_mode=s.occlusion_mode,
+                               penalty_a=self.penalty_a, penalty_b=s.penalty_b, occlusion_mode=s.occlusion_mode,
                                criterion=s.criterion, box_configs=self.box_configs, extrinsics=self.extrinsics)
         if self.visibility is not None:
             tried, _ = self.occlusion.attempts

@@ -170,7 +170,10 @@ class SelectorNode(Node):
         config = strategy.config()
         self.get_logger().info(f'{config.strategy.value} run of {self.iterations} iterations '
                                f'({config.search}; {self.planner.settings.criterion}, occlusion '
-                               f'{self.planner.settings.occlusion_mode})'
+                               f'{self.planner.settings.occlusion_mode}; body penalty '
+                               + (f'{self.planner.penalty_a:g} arctan({self.planner.settings.penalty_b:g} p_x))'
+                                  if self.planner.model.body_penalty else
+                                  'off: the description has no body (selection.body_penalty))')
                                + (f', resumed after iteration {resumed}' if resumed else ''))
 
     def _resume(self, path: Path) -> int:

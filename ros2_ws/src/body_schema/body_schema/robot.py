@@ -258,6 +258,13 @@ class ArmModel:
         A modified table's first row ``(a_0, alpha_0)`` [m, rad], which went into ``base``.
     urdf : UrdfSource or None
         The URDF the joints and the nominal kinematics come from (``urdf:`` in the YAML).
+    body_penalty : bool
+        Whether the selection cost's ``a * arctan(b * p_x)`` term applies (``selection:
+        {body_penalty: ...}`` in the YAML). It is the paper's penalty on hands behind the iCub's
+        body, whose root x points backward; for a robot without such a body the sign of ``p_x``
+        means nothing (a camera in front at +x makes it a reward for hands turned away from the
+        camera). Default: on for a description with ``eyes`` (a body carrying its cameras), off
+        for fixed cameras.
     """
 
     name: str
@@ -286,6 +293,7 @@ class ArmModel:
     convention: str = 'standard'
     mdh_first: tuple[float, float] = (0.0, 0.0)
     urdf: UrdfSource | None = None
+    body_penalty: bool = False
 
     @property
     def n_joints(self) -> int:
@@ -570,7 +578,9 @@ def robot_from_dict(data: dict[str, Any], source: str = '<dict>', *, propose_box
 
     known = {'name', 'root_frame', 'angle_unit', 'H0', 'torso', 'joints', 'calibration_box',
              'eyes', 'camera', 'hand_markers', 'fixed_cameras', 'scenery', 'noise_model',
-             'obstacles', 'collision', 'exports', 'urdf', 'convention', 'flange'}
+             'obstacles', 'collision', 'exports', 'urdf', 'convention', 'flange', 'selection'}
+    body_penalty = (_selection(data['selection'], where + 'selection') if 'selection' in data
+                    else eyes is not None)
     model = ArmModel(
         name=str(data.get('name', Path(source).stem)),
         joint_names=tuple(names),
@@ -598,6 +608,7 @@ def robot_from_dict(data: dict[str, Any], source: str = '<dict>', *, propose_box
         convention=convention,
         mdh_first=arm['first'],
         urdf=arm['urdf'],
+        body_penalty=body_penalty,
     )
     if propose_box and 'calibration_box' not in data and camera is not None and markers:
         from .box_proposal import proposed_box     # here: scipy and the collision check only when proposing
@@ -834,6 +845,16 @@ def _obstacles(items: Any, where: str, scale: float) -> tuple[Obstacle, ...]:
             raise RobotDescriptionError(f'{w}.rgba: colours must be in [0, 1], got {rgba.tolist()}')
         out.append(Obstacle(name, str(shape), dims, pose, tuple(float(c) for c in rgba)))
     return tuple(out)
+
+
+def _selection(sel: Any, where: str) -> bool:
+    """The ``selection:`` block: ``body_penalty`` (true or false) -> whether the penalty applies."""
+    if not isinstance(sel, dict) or set(sel) != {'body_penalty'}:
+        raise RobotDescriptionError(f'{where}: must be a mapping with body_penalty (true or false), got {sel!r}')
+    value = sel['body_penalty']
+    if not isinstance(value, bool):
+        raise RobotDescriptionError(f'{where}.body_penalty: must be true or false, got {value!r}')
+    return value
 
 
 def _collision(c: Any, where: str, names: tuple[str, ...]) -> CollisionSettings:

@@ -56,6 +56,10 @@ def test_with_dh_builds_another_model():
     (lambda d: d.__setitem__('noise_model', [1e-7]), r'noise_model: must be a mapping'),
     (lambda d: d.__setitem__('noise_model', {'covariance': 'robust'}),
      r"noise_model\.covariance: must be one of \['sandwich', 'sandwich_hc3', 'gauss_newton'\], got 'robust'"),
+    (lambda d: d.__setitem__('selection', {'body_penalty': 'yes'}),
+     r"selection\.body_penalty: must be true or false, got 'yes'"),
+    (lambda d: d.__setitem__('selection', {'body_penalty': True, 'penalty': 0.1}),
+     r'selection: must be a mapping with body_penalty'),
 ])
 def test_bad_descriptions_name_the_field(tmp_path, raw, mutate, message):
     data = copy.deepcopy(raw)
@@ -173,3 +177,16 @@ def test_a_description_can_name_the_covariance_its_errors_need(tmp_path, raw):
     assert used(arm) == 'sandwich_hc3'                                       # the description's
     assert used(arm, covariance='gauss_newton') == 'gauss_newton'            # a parameter wins
     assert used(body_schema.load_robot('icub_right_arm')) == 'sandwich'      # none named: the default
+
+
+def test_the_body_penalty_is_on_for_a_body_with_eyes_and_off_for_fixed_cameras(tmp_path, raw):
+    # The iCub's root x points backward from its body; a fixed camera has no body to be behind.
+    assert body_schema.load_robot('icub_right_arm').body_penalty
+    assert not body_schema.load_robot('panda').body_penalty
+    assert body_schema.load_robot('ur5e').body_penalty           # said so in its YAML (measured with it)
+    data = copy.deepcopy(raw)
+    data['selection'] = {'body_penalty': False}
+    assert not body_schema.load_robot(_write(tmp_path, data)).body_penalty
+    ur = yaml.safe_load(robot_path('ur5e').read_text())
+    ur.pop('selection')
+    assert not body_schema.load_robot(_write(tmp_path, ur)).body_penalty

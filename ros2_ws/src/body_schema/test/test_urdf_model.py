@@ -270,3 +270,20 @@ def test_the_palm_is_drawn_on_the_flange_where_the_markers_are() -> None:
     assert np.allclose(mdh.forward_kinematics(q) @ palm_mdh.origin, urdf.forward_kinematics(q) @ palm_urdf.origin,
                        atol=1e-9)
     assert palm_mdh.size == palm_urdf.size
+
+
+@pytest.mark.parametrize('robot', ['panda', 'kuka_iiwa'])
+def test_a_urdf_arm_is_described_by_what_its_urdf_lacks(robot: str) -> None:
+    """Issue 33's shape of a description: at most 30 lines, no joint table and no box (it is
+    proposed on loading, inside the limits), the camera's own fitted noise law."""
+    text = robot_path(robot).read_text()
+    doc = yaml.safe_load(text)
+    assert len(text.splitlines()) <= 30
+    assert 'joints' not in doc and 'calibration_box' not in doc and 'urdf' in doc
+    with warnings.catch_warnings():
+        warnings.simplefilter('ignore')
+        model = load_robot(robot)
+    assert np.all(model.calibration_box[:, 0] >= model.limits[:, 0])
+    assert np.all(model.calibration_box[:, 1] <= model.limits[:, 1])
+    assert np.all(np.ptp(model.calibration_box, axis=1) > np.radians(10.0))
+    assert set(model.noise_law) >= {'a_pos', 'floor_pos', 'floor_rot'} and model.noise_covariance == 'sandwich_hc3'

@@ -28,6 +28,8 @@ __all__ = [
     'compose_frames',
     'chain_frames',
     'equivalent_table',
+    'twin_tables',
+    'wrap_angle',
     'forward_kinematics',
     'pose_jacobian_dh',
     'pose_jacobian_from_frames',
@@ -277,8 +279,10 @@ def rotation_angle_deg(r_a: ArrayLike, r_b: ArrayLike) -> NDArray[np.float64]:
     return np.degrees(np.arctan2(np.linalg.norm(vee, axis=-1) / 2.0, cos))
 
 
-def _wrap(angle: NDArray[np.float64]) -> NDArray[np.float64]:
-    return (angle + np.pi) % (2.0 * np.pi) - np.pi
+def wrap_angle(angle: ArrayLike) -> NDArray[np.float64]:
+    """``angle`` [rad] written in ``[-pi, pi)``."""
+    return (np.asarray(angle, dtype=float) + np.pi) % (2.0 * np.pi) - np.pi
+
 
 
 def equivalent_table(dh: ArrayLike, near: ArrayLike) -> NDArray[np.float64]:
@@ -311,7 +315,7 @@ def equivalent_table(dh: ArrayLike, near: ArrayLike) -> NDArray[np.float64]:
         raise ValueError(f'equivalent_table: tables of shape (L, 4) needed, got {out.shape} and {ref.shape}')
 
     def gap(row: NDArray[np.float64], r: NDArray[np.float64]) -> float:
-        return float(abs(row[0] - r[0]) + abs(_wrap(row[2] - r[2])) + abs(_wrap(row[3] - r[3])))
+        return float(abs(row[0] - r[0]) + abs(wrap_angle(row[2] - r[2])) + abs(wrap_angle(row[3] - r[3])))
 
     for i in range(len(out) - 1):
         turned = out[i] + np.array([0.0, 0.0, 0.0, np.pi])
@@ -320,5 +324,46 @@ def equivalent_table(dh: ArrayLike, near: ArrayLike) -> NDArray[np.float64]:
             out[i] = turned
             out[i + 1, 3] += np.pi
     for col in (2, 3):
-        out[:, col] = ref[:, col] + _wrap(out[:, col] - ref[:, col])
+        out[:, col] = ref[:, col] + wrap_angle(out[:, col] - ref[:, col])
     return out
+
+
+def twin_tables(dh: ArrayLike, max_turned: int = 12) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """Every table with the same forward kinematics as ``dh`` got by turning inner frames by pi.
+
+    Turning the frame after link ``i`` half a revolution about its own ``z`` axis changes link
+    ``i`` to ``(offset_i + pi, -a_i, -alpha_i)`` and adds pi to ``offset_(i+1)``
+    (``Rz(pi) Tx(a) Rx(alpha) = Tx(-a) Rx(-alpha) Rz(pi)``); the turns of frames ``0 .. L-2``
+    compose freely, so a chain of ``L`` links has ``2^(L-1)`` such twins, angles taken modulo
+    2 pi (:func:`equivalent_table` picks one of them greedily).
+
+    Parameters
+    ----------
+    dh : array_like, shape (L, 4)
+    max_turned : int
+        Inner frames beyond which only single turns are listed (``2^(L-1)`` grows fast; arms have
+        at most about ten links).
+
+    Returns
+    -------
+    tables : ndarray, shape (K, L, 4)
+        The twins, ``tables[0]`` is ``dh`` itself; angles are not wrapped.
+    turns : ndarray, shape (K, L - 1)
+        Which inner frames each twin turns (0 or 1).
+    """
+    dh = np.asarray(dh, dtype=float)
+    if dh.ndim != 2 or dh.shape[1] != PARAMS_PER_LINK or len(dh) < 1:
+        raise ValueError(f'twin_tables: a table of shape (L, 4) needed, got {dh.shape}')
+    m = len(dh) - 1
+    if m <= max_turned:
+        turns = (np.arange(2 ** m)[:, None] >> np.arange(m)[None, :]) & 1
+    else:
+        turns = np.vstack([np.zeros((1, m), dtype=np.int64), np.eye(m, dtype=np.int64)])
+    padded = np.concatenate([np.zeros((len(turns), 1), dtype=np.int64), turns,
+                             np.zeros((len(turns), 1), dtype=np.int64)], axis=1)    # frames -1 .. L-1
+    out = np.repeat(dh[None], len(turns), axis=0)
+    sign = 1.0 - 2.0 * padded[:, 1:]                     # link i's a and alpha flip with its own frame
+    out[:, :, 0] *= sign
+    out[:, :, 2] *= sign
+    out[:, :, 3] += np.pi * (padded[:, :-1] + padded[:, 1:])
+    return out, turns.astype(np.int64)

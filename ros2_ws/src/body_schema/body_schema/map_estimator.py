@@ -33,6 +33,16 @@ model ``x_{k+1} = x_k + w_k``:
 * an optional sliding window: beyond ``window`` observations the oldest is folded into the
   Gaussian prior (linearised at the current solution), bounding the cost of an update.
 
+A DH chain has exact twins (:func:`body_schema.kinematics.twin_tables`): every angle modulo
+2 pi, and any inner frame turned half a revolution about its ``z`` axis, with a free marker
+absorbing the flange's turn. The camera cannot tell twins apart, so only the prior can; but a
+local solver stays on whichever branch the first, far-linearised observations led it to (a Panda
+run from a 442 mm / 61 deg guess settled on a twin with its flange turned 180 deg and angles two
+turns from the prior). With ``twins`` on, after each re-solve the estimate moves to the twin of
+lowest prior cost (the data cost is the same by construction, and is checked) and is re-solved
+there: a step that can only lower the MAP objective, and never taken on an estimate within pi
+of its prior, so it leaves every ordinary run unchanged.
+
 Parameter combinations the measurements cannot separate (``fixed_directions``, from
 :func:`body_schema.identifiability.analyse`: e.g. the ``d`` of a UR's three parallel joints) are
 held at the initial guess by an explicit prior of standard deviation ``fixed_std`` along each
@@ -57,11 +67,12 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from . import kinematics
 from .ekf import FilterError, InvalidInputError
-from .extrinsics import Extrinsics
+from .extrinsics import Extrinsics, pose_delta
 
 __all__ = ['MapSettings', 'MapUpdate', 'MapEstimator', 'LOSSES', 'COVARIANCES', 'sandwich_covariance']
 
@@ -202,6 +213,10 @@ class MapSettings:
         when a few selected observations inform a direction alone); ``'gauss_newton'``: the
         inverse Gauss-Newton information, inliers as Gaussian evidence
         of the stated covariance, outliers at their robust weight.
+    twins : bool
+        After each re-solve, move to the exact twin of the estimate (angles modulo 2 pi, inner
+        frames turned by pi, a free marker taking the flange's turn) nearest the prior, and
+        re-solve there.
     """
 
     loss: str = 'cauchy'
@@ -218,6 +233,7 @@ class MapSettings:
     jump_length: float = 0.01
     jump_angle: float = float(np.radians(3.0))
     covariance: str = 'sandwich'
+    twins: bool = True
 
     def __post_init__(self) -> None:
         if self.loss not in LOSSES:
@@ -271,6 +287,8 @@ class MapUpdate:
         The change test fired at this observation (a jump was added).
     nfev : int
         Residual evaluations of the re-solve.
+    twin_move : bool
+        The estimate moved to a twin nearer the prior (:attr:`MapSettings.twins`).
     """
 
     innovation: NDArray[np.float64]
@@ -281,6 +299,7 @@ class MapUpdate:
     outlier: bool
     change_detected: bool
     nfev: int
+    twin_move: bool = False
 
 
 def _inv_chol(m: NDArray[np.float64], name: str) -> NDArray[np.float64]:
@@ -343,8 +362,9 @@ class MapEstimator:
         The prior's standard deviation along each.
     last : MapUpdate or None
         Report of the last update.
-    n_updates, n_changes, n_marginalised : int
-        Observations used, changes detected, observations folded into the prior.
+    n_updates, n_changes, n_marginalised, n_twin_moves : int
+        Observations used, changes detected, observations folded into the prior, moves to a
+        twin nearer the prior.
     """
 
     def __init__(self, base: ArrayLike, x0: ArrayLike, P0: ArrayLike,  # noqa: N803
@@ -401,6 +421,7 @@ class MapEstimator:
         self.n_updates = 0
         self.n_changes = 0
         self.n_marginalised = 0
+        self.n_twin_moves = 0
         self._recent_nis: list[float] = []
 
     # ------------------------------------------------------------------------------------------
@@ -526,10 +547,13 @@ class MapEstimator:
         if s.window and self.n_observations > s.window:
             self._marginalise_oldest()
         nfev = self._solve()
+        moved = s.twins and self._move_to_nearest_twin()
+        if moved:
+            nfev += self._solve()
         r_new = self._whitened(self.x)[-1]
         chi = float(r_new @ r_new)
         self.n_updates += 1
-        self.last = MapUpdate(y, S, nis, float(np.sqrt(nis)), chi, chi > self._outlier_bound, change, nfev)
+        self.last = MapUpdate(y, S, nis, float(np.sqrt(nis)), chi, chi > self._outlier_bound, change, nfev, moved)
         return self.last
 
     def solve_batch(self, qs: ArrayLike, poses: ArrayLike, Rs: ArrayLike, max_nfev: int = 200) -> int:  # noqa: N803
@@ -556,7 +580,10 @@ class MapEstimator:
         self.Rs = np.concatenate([self.Rs] + [c[2][None] for c in checked])
         self.drift = np.vstack([self.drift, np.zeros((len(checked), self.n))])
         self.n_updates += len(checked)
-        return self._solve(max_nfev)
+        nfev = self._solve(max_nfev)
+        if self.settings.twins and self._move_to_nearest_twin():
+            nfev += self._solve(max_nfev)
+        return nfev
 
     # ------------------------------------------------------------------------------------------
     # The nonlinear least-squares problem
@@ -630,6 +657,81 @@ class MapEstimator:
         self.P = P
         return int(res.nfev)
 
+    def prior_cost(self, x: ArrayLike) -> NDArray[np.float64]:
+        """The prior's share of the MAP objective (Gaussian prior and held directions) at ``x``.
+
+        Parameters
+        ----------
+        x : array_like, shape (n,) or (K, n)
+
+        Returns
+        -------
+        ndarray, shape () or (K,)
+        """
+        x = np.asarray(x, dtype=float)
+        lp = _inv_chol(self.P_p, 'prior covariance')
+        r = np.concatenate([(x - self.x_p) @ lp.T, (x - self._fix_anchor) @ self._fix_rows.T], axis=-1)
+        return np.sum(r ** 2, axis=-1)
+
+    def twins(self, x: ArrayLike | None = None) -> NDArray[np.float64]:
+        """Every exact twin of ``x`` (default: the estimate), angles nearest the prior's.
+
+        The DH block takes each table of :func:`body_schema.kinematics.twin_tables`. Where the
+        marker is estimated, the last link's offset stays (a marker absorbs the last row, which is
+        held) and the marker's correction takes its turn instead: the last link turned by pi after
+        its joint is ``K^-1 Rz(pi) K`` at the flange, ``K = Tx(a) Rx(alpha)``. Angles are then
+        written within pi of the prior mean, and the corrections' rotation vectors with norm at
+        most pi. Every row gives the same hand pose as ``x`` at every configuration.
+
+        Returns
+        -------
+        ndarray, shape (K, n)
+            Row 0 is ``x`` itself, rewritten only by the wraps.
+        """
+        x = self.x if x is None else np.asarray(x, dtype=float)
+        tables, _ = kinematics.twin_tables(self.table(x))
+        xs = np.repeat(x[None], len(tables), axis=0)
+        ex = self.extrinsics
+        if ex is not None and 'marker' in ex.blocks:
+            turned = ~np.isclose(tables[:, -1, 3], x[self.n_dh - 1])
+            tables[:, -1, 3] = x[self.n_dh - 1]
+            a, alpha = x[self.n_dh - 4], x[self.n_dh - 2]
+            k = np.array([[1.0, 0.0, 0.0, a], [0.0, np.cos(alpha), -np.sin(alpha), 0.0],
+                          [0.0, np.sin(alpha), np.cos(alpha), 0.0], [0.0, 0.0, 0.0, 1.0]])
+            half = np.diag([-1.0, -1.0, 1.0, 1.0])                  # Rz(pi)
+            i = self.n_dh + 6 * ex.blocks.index('marker')
+            _, marker = ex.poses(x[self.n_dh:])
+            xs[turned, i:i + 6] = pose_delta(np.linalg.inv(k) @ half @ k @ marker, ex.marker)
+        xs[:, :self.n_dh] = tables.reshape(len(tables), -1)
+        angles = np.zeros(self.n, dtype=bool)
+        angles[:self.n_dh] = np.tile([False, False, True, True], self.n_links)
+        xs[:, angles] = self.x_p[angles] + kinematics.wrap_angle(xs[:, angles] - self.x_p[angles])
+        if ex is not None:
+            for j in range(len(ex.blocks)):
+                rot = slice(self.n_dh + 6 * j + 3, self.n_dh + 6 * j + 6)
+                xs[:, rot] = Rotation.from_rotvec(xs[:, rot]).as_rotvec()
+        return xs
+
+    def _move_to_nearest_twin(self) -> bool:
+        """Move the estimate to its twin of lowest prior cost; whether it moved.
+
+        A twin must lower the prior cost by more than 1e-6 and keep the data's cost (the
+        construction is exact; the check guards it).
+        """
+        xs = self.twins()
+        cost = self.prior_cost(xs)
+        best = int(np.argmin(cost))
+        if not cost[best] < float(self.prior_cost(self.x)) - 1e-6:
+            return False
+        w = self._effective_whitening()
+        before = float(np.sum(self._whitened(self.x, w) ** 2))
+        after = float(np.sum(self._whitened(xs[best], w) ** 2))
+        if abs(after - before) > 1e-6 * max(1.0, before):
+            return False
+        self.x = xs[best]
+        self.n_twin_moves += 1
+        return True
+
     def _marginalise_oldest(self) -> None:
         """Fold the oldest observation into the Gaussian prior, linearised at the estimate.
 
@@ -670,7 +772,7 @@ class MapEstimator:
     # State (checkpoint / resume)
 
     _ARRAYS = ('x', 'P', 'x_p', 'P_p', 'qs', 'zs', 'Rs', 'drift')
-    _COUNTS = ('n_updates', 'n_changes', 'n_marginalised')
+    _COUNTS = ('n_updates', 'n_changes', 'n_marginalised', 'n_twin_moves')
 
     def _state(self) -> dict[str, object]:
         d: dict[str, object] = {k: np.copy(getattr(self, k)) for k in self._ARRAYS}
@@ -699,7 +801,7 @@ class MapEstimator:
         for k in self._ARRAYS:
             setattr(self, k, np.array(d[f'map_{k}'], dtype=float))
         for k in self._COUNTS:
-            setattr(self, k, int(d[f'map_{k}']))
+            setattr(self, k, int(d.get(f'map_{k}', 0)))         # a checkpoint written before a count existed
         self._recent_nis = [float(v) for v in d['map_recent_nis']]
         self.last = None
 

@@ -127,6 +127,9 @@ class EstimatorSettings:
                                   'to a fraction of a degree, so pinning them at a wrong guess biases the rest); 0: '
                                   'pinned like the exact ones',
                                   (-1.0, 1.0))
+    twin_moves: bool = setting(_MAP.twins, 'MAP: after each re-solve move to the exact DH twin nearest the prior (the '
+                                      'same hand poses, angles within a turn of the guess, no frame turned by pi '
+                                      'that the prior does not turn): the camera cannot tell twins apart')
 
     @property
     def extrinsic_priors(self) -> tuple[tuple[float, float] | None, tuple[float, float] | None]:
@@ -142,7 +145,7 @@ class EstimatorSettings:
                            change_probability=self.change_probability, change_window=self.change_window,
                            change_count=self.change_count, warmup=self.warmup,
                            jump_length=self.jump_length,
-                           jump_angle=self.jump_angle,
+                           jump_angle=self.jump_angle, twins=self.twin_moves,
                            covariance=self.covariance or covariance or _MAP.covariance)
 
     def __post_init__(self) -> None:
@@ -259,9 +262,10 @@ class OnlineEstimator:
     def counters(self) -> dict[str, int]:
         if self.map is not None:
             return {'updates': self.map.n_updates, 'rejected': 0, 'duplicates': self.n_duplicates,
-                    'outliers': self.map.n_outliers, 'changes': self.map.n_changes}
+                    'outliers': self.map.n_outliers, 'changes': self.map.n_changes,
+                    'twin_moves': self.map.n_twin_moves}
         return {'updates': self.ekf.n_updates, 'rejected': self.ekf.n_rejected,
-                'duplicates': self.n_duplicates, 'outliers': self.ekf.n_rejected, 'changes': 0}
+                'duplicates': self.n_duplicates, 'outliers': self.ekf.n_rejected, 'changes': 0, 'twin_moves': 0}
 
     def describe_last(self) -> str:
         """One line on the last offered observation, for logs and status messages."""
@@ -272,6 +276,8 @@ class OnlineEstimator:
                 text += f' beyond the {self.settings.outlier_probability:.1%} bound: outlier'
             if u.change_detected:
                 text += '; change detected, older evidence aged'
+            if u.twin_move:
+                text += '; moved to the twin nearest the prior'
             return text
         return f'mahalanobis {self.mahalanobis:.3f}'
 

@@ -47,7 +47,8 @@ def test_one_update_per_configuration(arm, kind):
     x = est.x.copy()
     assert est.offer(q + 1e-5, z, R) is Outcome.DUPLICATE          # same static configuration
     np.testing.assert_array_equal(est.x, x)
-    assert est.counters == {'updates': 1, 'rejected': 0, 'duplicates': 1, 'outliers': 0, 'changes': 0}
+    assert est.counters == {'updates': 1, 'rejected': 0, 'duplicates': 1, 'outliers': 0, 'changes': 0,
+                            'twin_moves': 0}
     assert est.offer(q + 0.1, arm.forward_kinematics(q + 0.1), R) is Outcome.ACCEPTED
 
 

@@ -43,6 +43,12 @@ lowest prior cost (the data cost is the same by construction, and is checked) an
 there: a step that can only lower the MAP objective, and never taken on an estimate within pi
 of its prior, so it leaves every ordinary run unchanged.
 
+A wrong basin that is no twin shows as outliers one after another: the robust loss, which the
+re-solve applies to the prior's rows too, lets an estimate far from both the data and the prior
+stay there. After ``restart_after`` consecutive outliers the problem is also solved cold from
+the prior mean, and the solution with the lower objective is kept (a multi-start of the same
+objective).
+
 Parameter combinations the measurements cannot separate (``fixed_directions``, from
 :func:`body_schema.identifiability.analyse`: e.g. the ``d`` of a UR's three parallel joints) are
 held at the initial guess by an explicit prior of standard deviation ``fixed_std`` along each
@@ -86,6 +92,15 @@ _IRLS_WEIGHT = {
     'soft_l1': lambda z: 1.0 / np.sqrt(1.0 + z),
     'cauchy': lambda z: 1.0 / (1.0 + z),
     'arctan': lambda z: 1.0 / (1.0 + z ** 2),
+}
+
+#: Each loss ``rho(z)`` at ``z = (f / scale)^2`` (scipy's definitions; the cost is ``0.5 scale^2 sum rho``).
+_RHO = {
+    'linear': lambda z: z,
+    'huber': lambda z: np.where(z <= 1.0, z, 2.0 * np.sqrt(np.maximum(z, 1.0)) - 1.0),
+    'soft_l1': lambda z: 2.0 * (np.sqrt(1.0 + z) - 1.0),
+    'cauchy': lambda z: np.log1p(z),
+    'arctan': lambda z: np.arctan(z),
 }
 
 #: Slope of each loss's influence function, ``psi'(u) = rho'(z) + 2 z rho''(z)`` at ``z = (u / scale)^2``.
@@ -217,6 +232,13 @@ class MapSettings:
         After each re-solve, move to the exact twin of the estimate (angles modulo 2 pi, inner
         frames turned by pi, a free marker taking the flange's turn) nearest the prior, and
         re-solve there.
+    restart_after : int
+        After this many consecutive outliers, also solve from the prior mean (cold) and keep
+        whichever solution has the lower objective; 0: never. From a far initial guess the
+        first observations can lead the warm-started solver into a wrong basin, where every new
+        observation is an outlier and the robust loss lets the estimate stay (a Panda run:
+        39 outliers in a row). A consistent estimate makes 3 in a row with probability about
+        ``(1 - outlier_probability)^3``.
     """
 
     loss: str = 'cauchy'
@@ -234,6 +256,7 @@ class MapSettings:
     jump_angle: float = float(np.radians(3.0))
     covariance: str = 'sandwich'
     twins: bool = True
+    restart_after: int = 3
 
     def __post_init__(self) -> None:
         if self.loss not in LOSSES:
@@ -258,6 +281,8 @@ class MapSettings:
             raise ValueError(f'window must be 0 (all) or >= 2, got {self.window}')
         if self.change_window < 1:
             raise ValueError(f'change_window must be >= 1, got {self.change_window}')
+        if self.restart_after < 0:
+            raise ValueError(f'restart_after must be >= 0, got {self.restart_after}')
         if self.warmup < 0:
             raise ValueError(f'warmup must be >= 0, got {self.warmup}')
         if not 1 <= self.change_count <= self.change_window:
@@ -289,6 +314,9 @@ class MapUpdate:
         Residual evaluations of the re-solve.
     twin_move : bool
         The estimate moved to a twin nearer the prior (:attr:`MapSettings.twins`).
+    restart : bool
+        A solve from the prior mean found a lower objective and was kept
+        (:attr:`MapSettings.restart_after`).
     """
 
     innovation: NDArray[np.float64]
@@ -300,6 +328,7 @@ class MapUpdate:
     change_detected: bool
     nfev: int
     twin_move: bool = False
+    restart: bool = False
 
 
 def _inv_chol(m: NDArray[np.float64], name: str) -> NDArray[np.float64]:
@@ -362,9 +391,11 @@ class MapEstimator:
         The prior's standard deviation along each.
     last : MapUpdate or None
         Report of the last update.
-    n_updates, n_changes, n_marginalised, n_twin_moves : int
+    n_updates, n_changes, n_marginalised, n_twin_moves, n_restarts : int
         Observations used, changes detected, observations folded into the prior, moves to a
-        twin nearer the prior.
+        twin nearer the prior, restarts kept.
+    outlier_run : int
+        Consecutive outliers up to the last update.
     """
 
     def __init__(self, base: ArrayLike, x0: ArrayLike, P0: ArrayLike,  # noqa: N803
@@ -422,6 +453,8 @@ class MapEstimator:
         self.n_changes = 0
         self.n_marginalised = 0
         self.n_twin_moves = 0
+        self.n_restarts = 0
+        self.outlier_run = 0                      # consecutive outliers, for the restart
         self._recent_nis: list[float] = []
 
     # ------------------------------------------------------------------------------------------
@@ -553,8 +586,38 @@ class MapEstimator:
         r_new = self._whitened(self.x)[-1]
         chi = float(r_new @ r_new)
         self.n_updates += 1
-        self.last = MapUpdate(y, S, nis, float(np.sqrt(nis)), chi, chi > self._outlier_bound, change, nfev, moved)
+        outlier = chi > self._outlier_bound
+        self.outlier_run = self.outlier_run + 1 if outlier else 0
+        restart = False
+        if s.restart_after and self.outlier_run >= s.restart_after:
+            restart, used = self._restart()
+            nfev += used
+            if restart:
+                r_new = self._whitened(self.x)[-1]
+                chi = float(r_new @ r_new)
+                outlier = chi > self._outlier_bound
+                self.outlier_run = int(outlier)
+        self.last = MapUpdate(y, S, nis, float(np.sqrt(nis)), chi, outlier, change, nfev, moved, restart)
         return self.last
+
+    def _restart(self) -> tuple[bool, int]:
+        """Solve from the prior mean; keep it if its objective is lower. Returns (kept, evaluations)."""
+        kept = self._state()
+        w = self._effective_whitening()
+        current = self.objective(self.x, w)
+        self.x = self.x_p.copy()
+        try:
+            nfev = self._solve(max(200, self.settings.max_nfev))
+            if self.settings.twins and self._move_to_nearest_twin():
+                nfev += self._solve()
+        except FilterError:
+            self._restore(kept)
+            return False, 0
+        if self.objective(self.x, w) < current:
+            self.n_restarts += 1
+            return True, nfev
+        self._restore(kept)
+        return False, nfev
 
     def solve_batch(self, qs: ArrayLike, poses: ArrayLike, Rs: ArrayLike, max_nfev: int = 200) -> int:  # noqa: N803
         """Add many observations and solve once (the batch MAP of prior + all of them).
@@ -624,7 +687,7 @@ class MapEstimator:
             return np.vstack([lp, -np.einsum('nij,njk->nik', w, J).reshape(-1, self.n)])
 
         s = self.settings
-        loss = s.loss if self.n_updates >= s.warmup else 'huber'
+        loss = self._loss()
         try:
             res = least_squares(fun, self.x, jac=jac, method='trf', loss=loss, f_scale=s.loss_scale,
                                 max_nfev=max_nfev or s.max_nfev, x_scale='jac')
@@ -657,8 +720,35 @@ class MapEstimator:
         self.P = P
         return int(res.nfev)
 
+    def _loss(self) -> str:
+        """The robust loss of the next solve (Huber during the warm-up)."""
+        s = self.settings
+        return s.loss if self.n_updates >= s.warmup else 'huber'
+
+    def objective(self, x: ArrayLike, w: NDArray[np.float64] | None = None) -> float:
+        """What the re-solve minimises at ``x``: ``0.5 scale^2 sum rho`` over the prior, held and
+        whitened observation rows (scipy applies the robust loss to every row, the prior's too).
+
+        Parameters
+        ----------
+        x : array_like, shape (n,)
+        w : ndarray, shape (N, 6, 6), optional
+            The observations' whitening (default: at the estimate, as the re-solve takes it).
+        """
+        x = np.asarray(x, dtype=float)
+        rows = [self._prior_rows(x)]
+        if self.n_observations:
+            rows.append(self._whitened(x, w).ravel())
+        scale = self.settings.loss_scale
+        return float(0.5 * scale ** 2 * np.sum(_RHO[self._loss()]((np.concatenate(rows) / scale) ** 2)))
+
+    def _prior_rows(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Whitened prior and held-direction residuals at ``x`` (n,) or (K, n), shape (..., n + k)."""
+        lp = _inv_chol(self.P_p, 'prior covariance')
+        return np.concatenate([(x - self.x_p) @ lp.T, (x - self._fix_anchor) @ self._fix_rows.T], axis=-1)
+
     def prior_cost(self, x: ArrayLike) -> NDArray[np.float64]:
-        """The prior's share of the MAP objective (Gaussian prior and held directions) at ``x``.
+        """Squared whitened distance of ``x`` from the prior (Gaussian prior and held directions).
 
         Parameters
         ----------
@@ -668,10 +758,7 @@ class MapEstimator:
         -------
         ndarray, shape () or (K,)
         """
-        x = np.asarray(x, dtype=float)
-        lp = _inv_chol(self.P_p, 'prior covariance')
-        r = np.concatenate([(x - self.x_p) @ lp.T, (x - self._fix_anchor) @ self._fix_rows.T], axis=-1)
-        return np.sum(r ** 2, axis=-1)
+        return np.sum(self._prior_rows(np.asarray(x, dtype=float)) ** 2, axis=-1)
 
     def twins(self, x: ArrayLike | None = None) -> NDArray[np.float64]:
         """Every exact twin of ``x`` (default: the estimate), angles nearest the prior's.
@@ -715,13 +802,15 @@ class MapEstimator:
     def _move_to_nearest_twin(self) -> bool:
         """Move the estimate to its twin of lowest prior cost; whether it moved.
 
-        A twin must lower the prior cost by more than 1e-6 and keep the data's cost (the
-        construction is exact; the check guards it).
+        The twin is chosen by the objective's prior share (its data share is the same for all);
+        it must lower it and keep the data's cost (the construction is exact; the check guards it).
         """
         xs = self.twins()
-        cost = self.prior_cost(xs)
+        scale = self.settings.loss_scale
+        rho = _RHO[self._loss()]
+        cost = np.sum(rho((self._prior_rows(xs) / scale) ** 2), axis=-1)      # the objective's prior share
         best = int(np.argmin(cost))
-        if not cost[best] < float(self.prior_cost(self.x)) - 1e-6:
+        if not cost[best] < float(np.sum(rho((self._prior_rows(self.x) / scale) ** 2))) - 1e-9:
             return False
         w = self._effective_whitening()
         before = float(np.sum(self._whitened(self.x, w) ** 2))
@@ -772,7 +861,7 @@ class MapEstimator:
     # State (checkpoint / resume)
 
     _ARRAYS = ('x', 'P', 'x_p', 'P_p', 'qs', 'zs', 'Rs', 'drift')
-    _COUNTS = ('n_updates', 'n_changes', 'n_marginalised', 'n_twin_moves')
+    _COUNTS = ('n_updates', 'n_changes', 'n_marginalised', 'n_twin_moves', 'n_restarts', 'outlier_run')
 
     def _state(self) -> dict[str, object]:
         d: dict[str, object] = {k: np.copy(getattr(self, k)) for k in self._ARRAYS}

@@ -130,6 +130,9 @@ class EstimatorSettings:
     twin_moves: bool = setting(_MAP.twins, 'MAP: after each re-solve move to the exact DH twin nearest the prior (the '
                                       'same hand poses, angles within a turn of the guess, no frame turned by pi '
                                       'that the prior does not turn): the camera cannot tell twins apart')
+    restart_after: int = setting(_MAP.restart_after, 'MAP: after this many consecutive outliers also solve from '
+                                 'the prior mean and keep the lower objective (a far guess can lead the solver '
+                                 'into a wrong basin); 0: never', (0, 1000))
 
     @property
     def extrinsic_priors(self) -> tuple[tuple[float, float] | None, tuple[float, float] | None]:
@@ -146,6 +149,7 @@ class EstimatorSettings:
                            change_count=self.change_count, warmup=self.warmup,
                            jump_length=self.jump_length,
                            jump_angle=self.jump_angle, twins=self.twin_moves,
+                           restart_after=self.restart_after,
                            covariance=self.covariance or covariance or _MAP.covariance)
 
     def __post_init__(self) -> None:
@@ -263,9 +267,10 @@ class OnlineEstimator:
         if self.map is not None:
             return {'updates': self.map.n_updates, 'rejected': 0, 'duplicates': self.n_duplicates,
                     'outliers': self.map.n_outliers, 'changes': self.map.n_changes,
-                    'twin_moves': self.map.n_twin_moves}
+                    'twin_moves': self.map.n_twin_moves, 'restarts': self.map.n_restarts}
         return {'updates': self.ekf.n_updates, 'rejected': self.ekf.n_rejected,
-                'duplicates': self.n_duplicates, 'outliers': self.ekf.n_rejected, 'changes': 0, 'twin_moves': 0}
+                'duplicates': self.n_duplicates, 'outliers': self.ekf.n_rejected, 'changes': 0, 'twin_moves': 0,
+                'restarts': 0}
 
     def describe_last(self) -> str:
         """One line on the last offered observation, for logs and status messages."""
@@ -278,6 +283,9 @@ class OnlineEstimator:
                 text += '; change detected, older evidence aged'
             if u.twin_move:
                 text += '; moved to the twin nearest the prior'
+            if u.restart:
+                text += (f'; solved again from the prior mean after {self.settings.restart_after} outliers '
+                         'in a row: a lower objective, kept')
             return text
         return f'mahalanobis {self.mahalanobis:.3f}'
 

@@ -1,5 +1,9 @@
-"""Exact twins of a DH chain (angles modulo 2 pi, inner frames turned by pi, a free marker taking
-the flange's turn), and the MAP estimator's move to the twin nearest its prior."""
+"""Wrong basins of the MAP estimator: exact twins of a DH chain (angles modulo 2 pi, inner frames
+turned by pi, a free marker taking the flange's turn) and the move to the twin nearest the prior;
+a far guess's wrong basin and the restart from the prior mean."""
+from dataclasses import replace
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -109,3 +113,65 @@ def test_an_ordinary_run_never_moves():
     other = _estimator(np.r_[sampling.perturb_dh(UR5E.dh, 3).ravel(), np.zeros(12)])
     other.load_state_dict(state)
     np.testing.assert_array_equal(other.x, est.x)
+
+
+def _far_guess_run(settings: MapSettings):
+    """A rendered Panda AL run (seed 6, camera and marker estimated) from a guess 442 mm / 61 deg
+    off, re-fed from its recorded observations (45 detections, in order)."""
+    d = np.load(Path(__file__).parent / 'data' / 'panda_far_guess_run.npz')
+    ex = Extrinsics(d['camera'], d['marker'], tuple(d['camera_std']), tuple(d['marker_std']))
+    est = MapEstimator(d['base'], d['x0'], d['P0'], settings, limits=d['limits'],
+                       fixed_directions=d['fixed_directions'], fixed_std=d['fixed_std'], extrinsics=ex)
+    outliers = [est.update(q, z, R).outlier for q, z, R in zip(d['qs'], d['zs'], d['Rs'])]
+    return est, outliers, d
+
+
+@pytest.mark.parametrize('restart_after', [3, 0])
+def test_a_far_guess_leaves_its_wrong_basin_by_a_restart(restart_after):
+    """The first observation leads the warm-started solver into a wrong basin; every later one is
+    an outlier there. Three in a row and the cold solve from the prior mean, with its lower
+    objective, is kept: a handful of outliers instead of the whole run."""
+    settings = replace(MapSettings(covariance='sandwich_hc3'), restart_after=restart_after)
+    est, outliers, d = _far_guess_run(settings)
+    if restart_after:
+        assert est.n_restarts >= 1 and sum(outliers) <= 5 and not any(outliers[-8:])
+        assert np.all(est.residual_chi2()[-8:] < 20.0)     # the last ones explained to their noise
+    else:
+        assert est.n_restarts == 0 and sum(outliers) > 30
+
+
+def test_a_restart_is_refused_when_it_does_not_lower_the_objective():
+    """A solve from the prior mean that ends no lower is thrown away: the state is that of an
+    estimator that never tries one."""
+    true = sampling.perturb_dh(UR5E.dh, 1002, 0.004, np.radians(2.0))
+    x0 = np.r_[sampling.perturb_dh(UR5E.dh, 3).ravel(), np.zeros(12)]
+    est, never = _estimator(x0, MapSettings(restart_after=1)), _estimator(x0, MapSettings(restart_after=0))
+    obs = SyntheticRun(UR5E, true, PoseDependentNoise(), 5)(15)
+    bad = obs[0].pose.copy()
+    bad[:3, 3] += 0.3                                    # a gross detection error: an outlier
+    for e in (est, never):
+        for o in obs:
+            e.update(o.q, o.pose, o.R)
+        u = e.update(obs[1].q + 0.01, bad, obs[0].R)
+        assert u.outlier and not u.restart
+    assert est.n_restarts == 0
+    np.testing.assert_array_equal(est.x, never.x)
+    np.testing.assert_array_equal(est.P, never.P)
+    with pytest.raises(ValueError, match='restart_after must be >= 0, got -1'):
+        MapSettings(restart_after=-1)
+
+
+def test_the_objective_is_what_the_solver_minimises():
+    """``objective`` is scipy's cost: at the solution no twin or restart undercuts it, and it is
+    0.5 scale^2 sum rho over every row, the prior's too."""
+    true = sampling.perturb_dh(UR5E.dh, 1003, 0.004, np.radians(2.0))
+    est = _estimator(np.r_[sampling.perturb_dh(UR5E.dh, 3).ravel(), np.zeros(12)])
+    for o in SyntheticRun(UR5E, true, PoseDependentNoise(), 6)(12):
+        est.update(o.q, o.pose, o.R)
+    f = est.objective(est.x)
+    for step in (1e-4, -1e-4):
+        moved = est.x.copy()
+        moved[5] += step
+        assert est.objective(moved) > f
+    z = (np.r_[est._prior_rows(est.x), est._whitened(est.x).ravel()] / 3.0) ** 2
+    assert f == pytest.approx(0.5 * 9.0 * np.sum(np.log1p(z)))

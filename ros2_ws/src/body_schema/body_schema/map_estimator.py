@@ -237,8 +237,8 @@ class MapSettings:
         whichever solution has the lower objective; 0: never. From a far initial guess the
         first observations can lead the warm-started solver into a wrong basin, where every new
         observation is an outlier and the robust loss lets the estimate stay (a Panda run:
-        39 outliers in a row). A consistent estimate makes 3 in a row with probability about
-        ``(1 - outlier_probability)^3``.
+        39 outliers in a row). Under the stated noise law 3 in a row has probability
+        ``(1 - outlier_probability)^3``; a restart that finds nothing lower changes nothing.
     """
 
     loss: str = 'cauchy'

@@ -6,12 +6,15 @@ first updates are linearised far from the truth, so ``P`` ends up claiming more 
 data support and later, good observations look like outliers. :class:`MapEstimator` instead keeps
 the observations and, after each new one, re-solves the whole problem
 
-    x* = argmin  ||x - x_p||^2_{P_p^-1}  +  sum_i rho( ||z_i (-) h(x, q_i)||^2_{R_i^-1} )
+    x* = argmin  sum_j rho( (L_p (x - x_p))_j^2 )  +  sum_i sum_k rho( (L_i (z_i (-) h(x, q_i)))_k^2 )
 
-by nonlinear least squares (``scipy.optimize.least_squares``, trust-region reflective),
+(``L`` the whitening of the prior covariance ``P_p`` and of each observation's ``R_i``) by
+nonlinear least squares (``scipy.optimize.least_squares``, trust-region reflective),
 warm-started from the previous solution, so every observation is always linearised at the best
-current estimate. The posterior covariance is the inverse Gauss-Newton information at the
-solution. ``rho`` is a robust loss on the whitened residual (Cauchy by default): it replaces the
+current estimate. ``least_squares`` applies the robust loss to every residual component, the
+prior's whitened rows included: within the loss scale (3 sigma) the prior is nearly Gaussian,
+beyond it its pull fades as the data's does. The posterior covariance is taken at the
+solution (:attr:`MapSettings.covariance`). ``rho`` is a robust loss on the whitened residual (Cauchy by default): it replaces the
 EKF's hard chi-square gate. An observation whose whitened residual at the solution stays beyond
 the ``outlier_probability`` chi-square bound is reported as an outlier (counted, in the update
 report) but kept: if a later solution explains it, it stops being one.

@@ -75,6 +75,9 @@ class FrameScores:
     phi: NDArray[np.float64]
     n_markers: NDArray[np.int64]
     statuses: dict[str, int] = field(default_factory=dict)
+    #: (N, 3) line of sight from the camera to the marker the estimate relies on most, root frame
+    #: (None where not recorded, e.g. drawn errors).
+    los: NDArray[np.float64] | None = None
 
 
 def _truth_view(frame_root_T_cam: NDArray[np.float64], truth: NDArray[np.float64], model: ArmModel,
@@ -169,6 +172,7 @@ def evaluate(frames: Sequence[Frame], estimator: HandPoseEstimator, fusion: str 
                   np.full((n, 3), np.nan), np.full((n, 3), np.nan), np.full(n, np.nan),
                   np.full(n, np.nan), np.zeros(n, np.int64))
     statuses: dict[str, int] = {}
+    out.los = np.full((n, 3), np.nan)
     for i, f in enumerate(frames):
         out.in_view[i] = any(v[2] for v in f.truth_view.values())
         gated = [gate_marker(p, estimator.config) for p in f.poses]
@@ -187,6 +191,7 @@ def evaluate(frames: Sequence[Frame], estimator: HandPoseEstimator, fusion: str 
         used = [p for p in gated if p.ok and p.marker_id in hand.marker_ids]
         best = min(used, key=lambda p: float(estimator.quality.variances(p.r, p.phi_deg)[0]))
         out.r[i], out.phi[i] = f.truth_view[best.marker_id][:2]
+        out.los[i] = (f.truth @ estimator.placements[best.marker_id].hand_T_marker)[:3, 3] - f.root_T_cam[:3, 3]
     out.statuses = statuses
     return out
 
@@ -261,13 +266,35 @@ def _gauss_nll(sq: NDArray[np.float64], v: NDArray[np.float64], dof: int = 3) ->
 FLIP_DEG = 30.0
 
 
-def fit_noise(outcome: FrameScores, exclude_flips: bool = True) -> NoiseFit:
+def depth_split(outcome: FrameScores, ok: NDArray[np.bool_]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Squared position errors across the line of sight (2 axes) and along it (1), frames ``ok``."""
+    if outcome.los is None:
+        raise ValueError('these scores have no line of sight (FrameScores.los): rendered frames are needed')
+    unit = outcome.los[ok] / np.linalg.norm(outcome.los[ok], axis=1, keepdims=True)
+    along = np.einsum('ni,ni->n', outcome.pos_vec[ok], unit) ** 2
+    return np.maximum(outcome.pos_err[ok] ** 2 - along, 0.0), along
+
+
+def position_chi2(model: NoiseModel, outcome: FrameScores, ok: NDArray[np.bool_],
+                  vp: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``e^T R_p^-1 e`` of the frames ``ok`` (chi-square(3) for a calibrated law), ``vp`` the law's
+    variance across the line of sight; along it ``depth_ratio^2`` times that."""
+    if model.depth_ratio == 1.0:
+        return outcome.pos_err[ok] ** 2 / vp
+    across, along = depth_split(outcome, ok)
+    return across / vp + along / (model.depth_ratio ** 2 * vp)
+
+
+def fit_noise(outcome: FrameScores, exclude_flips: bool = True, depth: bool = False) -> NoiseFit:
     """Fit the pose-dependent and constant models to the successful frames of ``outcome``.
 
     With ``exclude_flips`` the gross outliers (orientation error above :data:`FLIP_DEG`: the
     wrong IPPE solution got through the ambiguity gate) are left out: a Gaussian covariance
     cannot describe them, and one 150-degree flip would otherwise set the orientation law's
     scale for every observation. Their rate is reported separately.
+
+    With ``depth`` the position law is fitted to the errors across the line of sight (2 dof) and
+    its ``depth_ratio`` to those along it, by maximum likelihood: ``k^2 = mean(e_along^2 / v)``.
     """
     ok = outcome.success & np.isfinite(outcome.r)
     if exclude_flips:
@@ -275,16 +302,25 @@ def fit_noise(outcome: FrameScores, exclude_flips: bool = True) -> NoiseFit:
     r, phi = outcome.r[ok], outcome.phi[ok]
     sq_p = outcome.pos_err[ok] ** 2
     sq_o = outcome.rot_err[ok] ** 2
-    (ap, bp, fp), _ = _fit_law(sq_p, r, phi, MIN_FLOOR_POS)
+    ratio = 1.0
+    if depth:
+        across, along = depth_split(outcome, ok)
+        (ap, bp, fp), _ = _fit_law(across, r, phi, MIN_FLOOR_POS, dof=2)
+        ratio = float(np.sqrt(np.mean(along / (ap * r ** 2 + bp * (phi - 45.0) ** 2 + fp))))
+    else:
+        (ap, bp, fp), _ = _fit_law(sq_p, r, phi, MIN_FLOOR_POS)
     (ao, bo, fo), _ = _fit_law(sq_o, r, phi, MIN_FLOOR_ROT)
-    pdn = PoseDependentNoise(ap, bp, ao, bo, fp, fo)
+    pdn = PoseDependentNoise(ap, bp, ao, bo, fp, fo, ratio)
     cn = ConstantNoise(float(np.sqrt(np.mean(sq_p) / 3)), float(np.sqrt(np.mean(sq_o) / 3)))
     chi95 = 7.814727903251178                       # chi-square(3) 95 % quantile
 
     def score(model: NoiseModel) -> tuple[float, tuple[float, float]]:
         vp, vo = (np.broadcast_to(v, r.shape) for v in model.variances(r, phi))
-        return (_gauss_nll(sq_p, vp) + _gauss_nll(sq_o, vo),
-                (float(np.mean(sq_p / vp <= chi95)), float(np.mean(sq_o / vo <= chi95))))
+        zp = position_chi2(model, outcome, ok, vp)
+        # Gaussian NLL of the position block: 3 log(2 pi v) + log(k^2) over 2, plus zp over 2.
+        nll_p = float(np.mean(0.5 * 3 * np.log(2 * np.pi * vp) + np.log(model.depth_ratio) + 0.5 * zp))
+        return (nll_p + _gauss_nll(sq_o, vo),
+                (float(np.mean(zp <= chi95)), float(np.mean(sq_o / vo <= chi95))))
 
     nll_pdn, cov_pdn = score(pdn)
     nll_cn, cov_cn = score(cn)
@@ -293,15 +329,19 @@ def fit_noise(outcome: FrameScores, exclude_flips: bool = True) -> NoiseFit:
 
 def draw_scores(law: NoiseModel, n: int, seed: int, r_range: tuple[float, float] = (0.15, 0.5)) -> FrameScores:
     """``n`` successful frames whose errors are drawn from ``law`` (a known truth for the fits),
-    at distances uniform in ``r_range`` [m] and viewing angles uniform in 0-85 deg."""
+    at distances uniform in ``r_range`` [m] and viewing angles uniform in 0-85 deg, each seen along
+    a random line of sight (the law's ``depth_ratio`` stretches the position error along it)."""
     rng = np.random.default_rng(seed)
     r, phi = rng.uniform(*r_range, n), rng.uniform(0, 85, n)
     vp, vo = (np.broadcast_to(v, r.shape) for v in law.variances(r, phi))
+    los = rng.normal(size=(n, 3))
+    los /= np.linalg.norm(los, axis=1, keepdims=True)
     pv = rng.normal(size=(n, 3)) * np.sqrt(vp)[:, None]
+    pv += (law.depth_ratio - 1.0) * np.einsum('ni,ni->n', pv, los)[:, None] * los
     ov = rng.normal(size=(n, 3)) * np.sqrt(vo)[:, None]
     ones = np.ones(n, bool)
     return FrameScores(ones, ones, np.linalg.norm(pv, axis=1), np.linalg.norm(ov, axis=1), pv, ov, r, phi,
-                       np.ones(n, np.int64))
+                       np.ones(n, np.int64), los=los)
 
 
 # --------------------------------------------------------------------------------------------

@@ -34,7 +34,7 @@ from body_schema.robot import NOISE_LAW_KEYS, ArmModel, load_robot
 from body_schema.sampling import uniform_configs
 
 from marker_detector.detection import DetectorConfig, HandPoseEstimator
-from tools.detector_accuracy import FLIP_DEG, FrameScores, NoiseFit, collect, evaluate, fit_noise, summarize
+from tools.detector_accuracy import FLIP_DEG, FrameScores, NoiseFit, collect, evaluate, fit_noise, position_chi2, summarize
 
 __all__ = ['views_of', 'law_yaml', 'calibration_of', 'tails', 'shape', 'main']
 
@@ -54,7 +54,8 @@ def views_of(model: ArmModel) -> list[tuple[str, tuple[int, int]]]:
 
 def law_yaml(law: PoseDependentNoise, comment: str, covariance: str = '') -> str:
     """The ``noise_model:`` block of a robot description for ``law`` (3 significant digits)."""
-    body = ', '.join([f'{k}: {getattr(law, k):.3g}' for k in NOISE_LAW_KEYS]
+    body = ', '.join([f'{k}: {getattr(law, k):.3g}' for k in NOISE_LAW_KEYS
+                      if k != 'depth_ratio' or law.depth_ratio != 1.0]
                      + ([f'covariance: {covariance}'] if covariance else []))
     return f'# {comment}\nnoise_model: {{{body}}}\n'
 
@@ -63,7 +64,7 @@ def _normalised(model: NoiseModel, out: FrameScores) -> tuple[np.ndarray, np.nda
     """Squared position and orientation errors over ``model``'s variances, flips excluded."""
     ok = out.success & np.isfinite(out.r) & (np.degrees(out.rot_err) <= FLIP_DEG)
     vp, vo = (np.broadcast_to(v, out.r[ok].shape) for v in model.variances(out.r[ok], out.phi[ok]))
-    return out.pos_err[ok] ** 2 / vp, out.rot_err[ok] ** 2 / vo
+    return position_chi2(model, out, ok, vp), out.rot_err[ok] ** 2 / vo
 
 
 def calibration_of(model: NoiseModel, out: FrameScores) -> dict[str, float]:
@@ -144,7 +145,7 @@ def _row(name: str, model: NoiseModel, out: FrameScores) -> str:
             f'{c["cover_rot"]:.2f} |')
 
 
-def run(robot: str, n: int, seed: int, pixel_noise: float) -> tuple[str, NoiseFit]:
+def run(robot: str, n: int, seed: int, pixel_noise: float, depth: bool = False) -> tuple[str, NoiseFit]:
     """Render, detect, fit; the Markdown report (with the YAML block) and the fit."""
     from icub_sim_bridge.world import SimWorld
 
@@ -156,7 +157,7 @@ def run(robot: str, n: int, seed: int, pixel_noise: float) -> tuple[str, NoiseFi
         frames = collect(model, world, configs, views, noise_std=pixel_noise, seed=seed)
     current = PoseDependentNoise.for_robot(model)
     out = evaluate(frames, HandPoseEstimator(model, current, DetectorConfig()))
-    fit = fit_noise(out)
+    fit = fit_noise(out, depth=depth)
     tl = tails(fit.pdn, out)
     sh = shape(fit.pdn, out, np.array([f.root_T_cam[:3, :3] for f in frames]))
     covariance = 'sandwich_hc3' if tl['dof'] < HEAVY_TAILS_DOF else ''
@@ -189,10 +190,14 @@ def run(robot: str, n: int, seed: int, pixel_noise: float) -> tuple[str, NoiseFi
              ('Tails this heavy (under {:g} degrees of freedom): the block asks the estimator for the '
               'leverage-corrected spread (covariance: sandwich_hc3).'.format(HEAVY_TAILS_DOF) if covariance else
               'Tails near Gaussian: the estimator\'s default covariance.'), '',
+             (f'Line of sight: the position law is fitted across it and `depth_ratio` along it: the error '
+              f'along the line of sight is {fit.pdn.depth_ratio:.3g} times that across it.' if depth else
+              'An isotropic position law (`--depth` fits one across the line of sight and its `depth_ratio` '
+              'along it).'), '',
              f'Fitted on {fit.n} poses; {time.perf_counter() - t0:.0f} s. Paste into the description:', '',
              '```yaml',
              law_yaml(fit.pdn, f'Fitted by: python -m tools.fit_noise --robot {robot} --n {n} --seed {seed} '
-                               f'--pixel-noise {pixel_noise:g}', covariance).rstrip(),
+                               f'--pixel-noise {pixel_noise:g}' + (' --depth' if depth else ''), covariance).rstrip(),
              f'# CN baseline fitted on the same poses: cn_sigma_pos {fit.cn.sigma_pos:.3g} m, '
              f'cn_sigma_rot_deg {np.degrees(fit.cn.sigma_rot):.3g}',
              '```', '']
@@ -206,11 +211,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument('--seed', type=int, default=1)
     ap.add_argument('--pixel-noise', type=float, default=0.0,
                     help="additive pixel noise [grey levels]; the simulator node's pixel_noise_std")
+    ap.add_argument('--depth', action='store_true',
+                    help='fit the position law across the line of sight and its depth_ratio along it')
     ap.add_argument('--out', type=Path, help='also write the report here')
     args = ap.parse_args(list(argv) if argv is not None else None)
     if args.n < 20:
         ap.error(f'--n must be at least 20 for a fit of six coefficients, got {args.n}')
-    report, _ = run(args.robot, args.n, args.seed, args.pixel_noise)
+    report, _ = run(args.robot, args.n, args.seed, args.pixel_noise, args.depth)
     print(report)
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -75,3 +75,20 @@ def test_shape_sees_a_depth_error_the_isotropic_law_does_not_describe() -> None:
     aniso = shape(law, deep, cams)
     assert aniso['position'][2] == pytest.approx(7.0, rel=0.1) and aniso['position'][0] == pytest.approx(1.0, rel=0.1)
     assert aniso['ratio'] == pytest.approx(7.0, rel=0.15)
+
+
+def test_the_depth_fit_recovers_a_line_of_sight_law_and_the_isotropic_fit_cannot() -> None:
+    from tools.detector_accuracy import fit_noise
+    truth = PoseDependentNoise(3e-7, 1e-8, 1.3e-6, 2e-8, 1e-8, 3e-7, depth_ratio=6.0)
+    out = _draw(truth, 6000, 3)
+    deep, flat = fit_noise(out, depth=True), fit_noise(out)
+    assert deep.pdn.depth_ratio == pytest.approx(6.0, rel=0.05) and flat.pdn.depth_ratio == 1.0
+    for r in (0.9, 1.7):
+        assert deep.pdn.variances(r, 30.0)[0] == pytest.approx(truth.variances(r, 30.0)[0], rel=0.1)
+    assert deep.nll_pdn < flat.nll_pdn - 0.5
+    assert deep.coverage_pdn[0] == pytest.approx(0.95, abs=0.01)
+    c = calibration_of(truth, out)
+    assert c['ratio_pos'] == pytest.approx(1.0, abs=0.05) and c['cover_pos'] == pytest.approx(0.95, abs=0.01)
+    block = yaml.safe_load(law_yaml(deep.pdn, 'fitted'))['noise_model']
+    assert block['depth_ratio'] == pytest.approx(6.0, rel=0.05)
+    assert 'depth_ratio' not in yaml.safe_load(law_yaml(flat.pdn, 'fitted'))['noise_model']

@@ -710,7 +710,7 @@ def _urdf_arm(data: dict[str, Any], where: str, source: str) -> dict[str, Any]:
 
 
 #: The keys a description's ``noise_model:`` block may set (units as in PoseDependentNoise).
-NOISE_LAW_KEYS: tuple[str, ...] = ('a_pos', 'b_pos', 'floor_pos', 'a_rot', 'b_rot', 'floor_rot')
+NOISE_LAW_KEYS: tuple[str, ...] = ('a_pos', 'b_pos', 'floor_pos', 'a_rot', 'b_rot', 'floor_rot', 'depth_ratio')
 
 
 def _noise_law(n: Any, where: str) -> tuple[dict[str, float], str]:
@@ -735,6 +735,8 @@ def _noise_law(n: Any, where: str) -> tuple[dict[str, float], str]:
             raise RobotDescriptionError(f'{where}.{k}: must be a number, got {v!r}') from exc
         if not np.isfinite(law[k]) or law[k] < 0:
             raise RobotDescriptionError(f'{where}.{k}: must be finite and >= 0, got {v!r}')
+    if law.get('depth_ratio', 1.0) <= 0:
+        raise RobotDescriptionError(f'{where}.depth_ratio: must be > 0, got {n["depth_ratio"]!r}')
     return law, covariance
 
 

@@ -66,3 +66,30 @@ def test_constant_noise_and_factory():
         PoseDependentNoise(a_pos=-1.0)
     with pytest.raises(ValueError, match='sigma_rot'):
         ConstantNoise(sigma_rot=float('nan'))
+
+
+def test_a_depth_ratio_stretches_the_position_along_the_line_of_sight():
+    from body_schema import load_robot
+    from body_schema.noise import line_of_sight_covariance
+
+    np.testing.assert_array_equal(line_of_sight_covariance(1e-6, 1e-5, [0.3, 0.1, 2.0], 1.0),
+                                  np.diag([1e-6] * 3 + [1e-5] * 3))
+    cov = line_of_sight_covariance(np.array([1e-6, 4e-6]), np.array([1e-5, 1e-5]), [[0, 0, 2.0], [1.0, 0, 0]], 3.0)
+    np.testing.assert_allclose(np.diag(cov[0])[:3], [1e-6, 1e-6, 9e-6])
+    np.testing.assert_allclose(np.diag(cov[1])[:3], [36e-6, 4e-6, 4e-6])
+    # The predicted covariance of a hand pose: along its marker's line of sight from the camera.
+    ur = load_robot('ur5e')
+    deep = PoseDependentNoise.for_robot(ur, depth_ratio=4.0)
+    cam = ur.camera_pose('left')
+    hands = ur.forward_kinematics(np.mean(ur.calibration_box, axis=1)[None].repeat(3, 0) + [[0.0], [0.1], [0.2]])
+    covs = deep.hand_covariance(cam, hands, ur.markers)
+    for hand, c in zip(hands, covs):
+        los = (hand @ ur.markers[0].hand_T_marker)[:3, 3] - cam[:3, 3]
+        values, vectors = np.linalg.eigh(c[:3, :3])
+        assert values[2] == pytest.approx(16.0 * values[0]) and values[1] == pytest.approx(values[0])
+        assert abs(vectors[:, 2] @ los) / np.linalg.norm(los) == pytest.approx(1.0)
+    np.testing.assert_allclose(deep.hand_covariance(cam, hands[0], ur.markers), covs[0])
+    np.testing.assert_array_equal(PoseDependentNoise.for_robot(ur).hand_covariance(cam, hands, ur.markers)[:, 3:, 3:],
+                                  covs[:, 3:, 3:])
+    with pytest.raises(ValueError, match='depth_ratio must be finite and > 0, got 0.0'):
+        PoseDependentNoise(depth_ratio=0.0)

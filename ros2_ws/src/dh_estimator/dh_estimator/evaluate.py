@@ -45,11 +45,12 @@ import csv
 import json
 import sys
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 from numpy.typing import NDArray
 
 from body_schema import load_robot, sampling
@@ -58,7 +59,7 @@ from body_schema.identifiability import average_nees_band, subspace_nees
 from body_schema.kinematics import equivalent_table
 from body_schema.map_estimator import COVARIANCES, LOSSES
 from body_schema.metrics import PoseErrorEvaluator, expected_pose_errors
-from body_schema.noise import NOISE_MODELS
+from body_schema.noise import NOISE_MODELS, PoseDependentNoise
 from calibration_interfaces import mcap_reader
 from calibration_interfaces.contract import PUBLISH_TIME_SOURCE
 from calibration_interfaces.messages import msg_to_covariance, msg_to_extrinsics, msg_to_table
@@ -89,7 +90,10 @@ class EvaluationSettings:
     ``initial`` is 'recorded' (the first estimate and covariance in the bag, i.e. the online
     run's initial guess), 'perturbed' (seeded draw with ``initial_seed``, as the node does) or
     'nominal'. ``noise.noise_model`` 'pose_dependent' uses the recorded /hand_pose covariances,
-    'constant' the CN baseline.
+    'constant' the CN baseline. ``noise_law`` (coefficients of
+    :class:`body_schema.noise.PoseDependentNoise`, e.g. a ``noise_model:`` block that
+    ``tools.fit_noise`` printed) replaces each recorded covariance by that law's at the observed
+    hand pose, seen from the description's fixed camera, as the detector would have published it.
     """
 
     robot: str = 'icub_right_arm'
@@ -98,6 +102,7 @@ class EvaluationSettings:
     noise: NoiseSettings = NoiseSettings()
     estimator: EstimatorSettings = field(default_factory=EstimatorSettings)
     pairing: PairingSettings = field(default_factory=PairingSettings)
+    noise_law: tuple[tuple[str, float], ...] = ()
 
     def __post_init__(self) -> None:
         if self.initial not in ('recorded', 'perturbed', 'nominal'):
@@ -224,11 +229,21 @@ def evaluate_bag(path: str | Path, settings: EvaluationSettings = EvaluationSett
     progress: list[tuple[dict[str, Any], NDArray[np.float64], NDArray[np.float64] | None, int]] = []
     backlog: list[tuple[str, Any, float]] = []    # inputs that arrive before the filter can start
 
+    covariance_of = None
+    if settings.noise_law:
+        if not model.fixed_cameras:
+            raise ValueError(f'noise_law: re-applying a law needs a fixed camera; {model.name!r} has none')
+        law = PoseDependentNoise(**dict(settings.noise_law))
+        camera = model.camera_pose(model.camera_names[0])
+
+        def covariance_of(pose: NDArray[np.float64]) -> NDArray[np.float64]:
+            return law.hand_covariance(camera, pose, model.markers)
+
     def start() -> None:
         nonlocal estimator, feeder
         estimator = OnlineEstimator(model, x0, P0, settings.estimator)
         feeder = MessageFeeder(ObservationPairer(estimator, settings.pairing), model.joint_names,
-                               settings.noise.build() if settings.noise.constant else None)
+                               settings.noise.build() if settings.noise.constant else None, covariance_of)
 
     def feed(topic: str, msg: Any, now: float) -> None:
         try:
@@ -449,6 +464,26 @@ def _six(v: Sequence[float]) -> str:
     return f'[{", ".join(f"{x:.2f}" for x in v[:3])}] [{", ".join(f"{x:.3f}" for x in v[3:])}]'
 
 
+def read_noise_law(path: str | Path) -> tuple[tuple[str, float], ...]:
+    """The coefficients of the ``noise_model:`` block in the YAML file ``path`` (``covariance`` aside).
+
+    Raises
+    ------
+    ValueError
+        Naming the file, if it has no ``noise_model`` mapping or a key or value the law refuses.
+    """
+    data = yaml.safe_load(Path(path).read_text())
+    block = data.get('noise_model') if isinstance(data, dict) else None
+    if not isinstance(block, dict):
+        raise ValueError(f"{path}: no 'noise_model:' mapping")
+    try:
+        law = {str(k): float(v) for k, v in block.items() if k != 'covariance'}   # YAML reads 1e-06 as text
+        PoseDependentNoise(**law)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f'{path}: noise_model: {exc}') from exc
+    return tuple(law.items())
+
+
 def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog='evaluate', description=__doc__.split('\n\n')[0],
                                  formatter_class=argparse.ArgumentDefaultsHelpFormatter)
@@ -477,6 +512,9 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument('--parallel-std', type=float,
                     help="MAP: prior [m] holding what only parallel axes hide (negative: the initial guess's "
                          'spread; 0: pinned, as before)')
+    ap.add_argument('--noise-law', type=Path,
+                    help="a YAML with a 'noise_model:' block (what tools.fit_noise prints): its law's covariance "
+                         'replaces each recorded one (a fixed camera only)')
     ap.add_argument('--no-plots', action='store_true', help='write the CSV only')
     return ap
 
@@ -493,6 +531,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         values = dict(read_params_file(args.params_file, 'dh_estimator')) if args.params_file else {}
         values.update({k: getattr(args, k) for k in _OVERRIDES if getattr(args, k) is not None})
         settings = EvaluationSettings.from_parameters(values, initial=args.initial)
+        if args.noise_law is not None:
+            settings = replace(settings, noise_law=read_noise_law(args.noise_law))
         ev = evaluate_bag(args.bag, settings)
     except (FileNotFoundError, ValueError) as exc:
         print(f'evaluate: {exc}', file=sys.stderr)

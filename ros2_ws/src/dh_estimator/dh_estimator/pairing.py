@@ -14,7 +14,7 @@ clock that steps back restarts the joint buffer (:class:`~dh_estimator.joint_buf
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -228,13 +228,18 @@ class MessageFeeder:
         The estimated joints, in the estimator's order.
     constant_noise : ConstantNoise, optional
         Use its covariance (the paper's CN baseline) instead of the one in ``/hand_pose``.
+    covariance_of : callable, optional
+        ``R = covariance_of(pose)`` (4, 4) -> (6, 6) instead of the one in ``/hand_pose``: another
+        noise law applied at each observed hand pose, as the detector would have.
     """
 
     def __init__(self, pairer: ObservationPairer, joint_names: Sequence[str],
-                 constant_noise: ConstantNoise | None = None) -> None:
+                 constant_noise: ConstantNoise | None = None,
+                 covariance_of: Callable[[NDArray[np.float64]], NDArray[np.float64]] | None = None) -> None:
         self.pairer = pairer
         self.joint_names = list(joint_names)
         self.constant_noise = constant_noise
+        self.covariance_of = covariance_of
 
     def _future(self, topic: str, counter: str, exc: StampInFuture) -> MessageError:
         return MessageError(counter, f'{topic} {exc}; ignored ({self.pairer.counters[counter]} so far)',
@@ -287,6 +292,8 @@ class MessageFeeder:
             raise MessageError('pose', f'/hand_pose with an invalid pose rejected: {exc}', once=False) from exc
         if self.constant_noise is not None:
             R = self.constant_noise.covariance(0.0, 45.0)  # noqa: N806
+        elif self.covariance_of is not None:
+            R = np.asarray(self.covariance_of(pose), dtype=float)  # noqa: N806
         else:
             R = np.array(msg.pose.covariance, dtype=float).reshape(6, 6)  # noqa: N806
         try:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import csv
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -437,3 +438,39 @@ def test_the_truth_is_scored_on_the_branch_of_the_table_the_estimate_took() -> N
     x, errors = true_state(with_camera, ur.dh, (np.zeros(6), np.zeros(6)))
     assert np.abs(x - with_camera.x).max() < 1e-9                       # the estimate is the truth
     assert max(abs(v) for b in errors.values() for v in b[0]) < 1e-6
+
+
+def test_another_noise_law_replaces_the_recorded_covariances(tmp_path: Path, capsys, monkeypatch) -> None:
+    """``noise_law``: every observation takes the law's covariance at its hand pose, seen from the
+    description's camera (the recorded 0.1 mm / 0.02 deg is replaced by a law 10x wider)."""
+    from body_schema.noise import PoseDependentNoise
+    from dh_estimator import evaluate as evaluate_module
+    path, _ = _ur5e_bag(tmp_path / 'ur.mcap', True)
+    values = {'robot': 'ur5e', 'camera_prior': '0.02 2', 'marker_prior': '0.005 5'}
+    recorded = evaluate_bag(path, EvaluationSettings.from_parameters(values))
+    law = {'a_pos': 0.0, 'b_pos': 0.0, 'floor_pos': 1e-6, 'a_rot': 0.0, 'b_rot': 0.0, 'floor_rot': 1e-5,
+           'depth_ratio': 3.0}
+    used = []
+    real = PoseDependentNoise.hand_covariance
+
+    def spy(self, camera, pose, markers):
+        used.append(real(self, camera, pose, markers))
+        return used[-1]
+
+    monkeypatch.setattr(PoseDependentNoise, 'hand_covariance', spy)
+    wide = evaluate_bag(path, replace(EvaluationSettings.from_parameters(values), noise_law=tuple(law.items())))
+    monkeypatch.undo()
+    assert len(used) == 18
+    for cov in used:
+        assert np.sort(np.linalg.eigvalsh(cov[:3, :3])) == pytest.approx([1e-6, 1e-6, 9e-6])
+    # Ten times the recorded standard deviations and more: the information limit far wider.
+    assert wide.rows[-1].expected_position_mm > 10.0 * recorded.rows[-1].expected_position_mm
+    # The command line reads the block tools.fit_noise prints, and names a file without one.
+    good, bad = tmp_path / 'law.yaml', tmp_path / 'bad.yaml'
+    good.write_text('noise_model: {' + ', '.join(f'{k}: {v}' for k, v in law.items()) + ', covariance: sandwich}\n')
+    bad.write_text('joints: []\n')
+    assert evaluate_module.read_noise_law(good) == tuple((k, float(v)) for k, v in law.items())
+    assert evaluate_module.main([str(path), '--robot', 'ur5e', '--noise-law', str(bad), '--no-plots']) == 2
+    assert f"{bad}: no 'noise_model:' mapping" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="re-applying a law needs a fixed camera; 'icub_right_arm' has none"):
+        evaluate_bag(path, EvaluationSettings(noise_law=tuple(law.items())))

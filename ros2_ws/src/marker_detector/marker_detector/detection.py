@@ -32,7 +32,7 @@ from scipy.spatial.transform import Rotation
 
 from body_schema.kinematics import rotation_angle_deg
 from body_schema.markers import aruco_dictionary, marker_corners, refine_corners_edges
-from body_schema.noise import NoiseModel, PoseDependentNoise, view_geometry
+from body_schema.noise import NoiseModel, PoseDependentNoise, line_of_sight_covariance, view_geometry
 from body_schema.robot import ArmModel, MarkerPlacement
 from calibration_interfaces.outcome import FrameStatus
 from calibration_interfaces.parameters import setting
@@ -547,9 +547,12 @@ class HandPoseEstimator:
         phi = np.array([p.phi_deg for p in ok])
         q_pos, q_rot = self.quality.variances(r, phi)
         n_pos, n_rot = self.noise.variances(r, phi)
+        # Each marker's line of sight in the output frame: the law's depth_ratio stretches along it.
+        los = [root[:3, :3] @ p.cam_T_marker[:3, 3] for p in ok]
+        ratio = self.noise.depth_ratio
         singles = [HandEstimate(root @ hand_from_marker(p.cam_T_marker, self.placements[p.marker_id]),
-                                _cov(float(n_pos[i]), float(n_rot[i])), (p.marker_id,),
-                                float(n_pos[i]), float(n_rot[i])) for i, p in enumerate(ok)]
+                                line_of_sight_covariance(float(n_pos[i]), float(n_rot[i]), los[i], ratio),
+                                (p.marker_id,), float(n_pos[i]), float(n_rot[i])) for i, p in enumerate(ok)]
         best = int(np.argmin(q_pos))
         if fusion == 'best' or len(ok) == 1:
             return singles[best]
@@ -558,11 +561,12 @@ class HandPoseEstimator:
                                    for i, s in enumerate(singles)])
         pv = 1.0 / np.sum(1.0 / n_pos)
         rv = 1.0 / np.sum(1.0 / n_rot)
+        cov = line_of_sight_covariance(pv, rv, los[best], self.noise.depth_ratio)
         if fusion == 'weighted':
-            return HandEstimate(weighted.pose, _cov(pv, rv), weighted.marker_ids, pv, rv)
+            return HandEstimate(weighted.pose, cov, weighted.marker_ids, pv, rv)
         cam_T_hand0 = np.linalg.inv(root) @ singles[best].pose
         cam_T_hand = refine_joint(cam_T_hand0, ok, self.placements, self.side, k, dist)
-        return HandEstimate(root @ cam_T_hand, _cov(pv, rv), weighted.marker_ids, pv, rv)
+        return HandEstimate(root @ cam_T_hand, cov, weighted.marker_ids, pv, rv)
 
     def process(self, gray: NDArray[np.uint8], k: ArrayLike, dist: ArrayLike | None = None,
                 root_T_cam: ArrayLike | None = None) -> FrameResult:

@@ -189,6 +189,15 @@ def test_hand_pose_in_root_frame_with_covariance(model) -> None:
     cn = ConstantNoise(0.004, np.radians(1.0))
     res_cn = HandPoseEstimator(model, cn).process(img, k, None, root_T_cam)
     np.testing.assert_allclose(np.diag(res_cn.hand.covariance), [0.004 ** 2] * 3 + [np.radians(1.0) ** 2] * 3)
+    # A law with a depth_ratio stretches the position block along the camera's line of sight to the marker.
+    deep = dataclasses.replace(pdn, depth_ratio=5.0)
+    cov = HandPoseEstimator(model, deep).process(img, k, None, root_T_cam).hand.covariance
+    los = root_T_cam[:3, :3] @ m.cam_T_marker[:3, 3]
+    values, vectors = np.linalg.eigh(cov[:3, :3])
+    across = pdn.covariance(m.r, m.phi_deg)[0, 0]
+    np.testing.assert_allclose(values, [across, across, 25.0 * across], rtol=1e-9)
+    assert abs(vectors[:, 2] @ los) / np.linalg.norm(los) == pytest.approx(1.0, abs=1e-9)
+    np.testing.assert_allclose(cov[3:, 3:], hand.covariance[3:, 3:])
 
 
 def test_hand_from_marker_inverts_placement(model) -> None:

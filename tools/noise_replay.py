@@ -17,7 +17,6 @@ Usage (from the repository root)::
 from __future__ import annotations
 
 import argparse
-import shlex
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -27,6 +26,7 @@ import numpy as np
 from scipy.stats import wilcoxon
 
 from calibration_interfaces.parameters import read_params_file
+from tools.seed_study import read_run_env
 
 __all__ = ['run_settings', 'replay', 'report', 'main']
 
@@ -39,12 +39,7 @@ def run_settings(run: Path):  # -> dh_estimator.evaluate.EvaluationSettings
     what ``run.env`` says of the robot, the noise model, the estimator and the extrinsic priors."""
     from dh_estimator.evaluate import EvaluationSettings
 
-    env = {}
-    for line in (run / 'run.env').read_text().splitlines():
-        if '=' in line:
-            key, value = line.split('=', 1)
-            words = shlex.split(value)
-            env[key] = words[0] if words else ''
+    env = read_run_env(run)
     values = dict(read_params_file(CONFIG / 'estimator.yaml', 'dh_estimator'))
     values.update(robot=env['robot'], noise_model=env.get('noise', 'pose_dependent'),
                   estimator=env.get('estimator', 'map'))

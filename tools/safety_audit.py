@@ -36,6 +36,7 @@ from body_schema import load_robot
 from body_schema.collision import CollisionModel
 from calibration_interfaces.mcap_reader import read_messages
 from calibration_interfaces.outcome import CONTACT_DIAGNOSTIC, decode_contacts
+from tools.seed_study import read_run_env
 
 __all__ = ['audit_run', 'main']
 
@@ -54,11 +55,10 @@ def _contacts(bag: Path) -> dict[str, Any] | None:
 
 def _checked(run: Path, records: list[dict[str, Any]]) -> bool:
     """Whether the selector checked its targets: the launcher's ``run.env`` says, else the records."""
-    env = run / 'run.env'
-    if env.exists():
-        for line in env.read_text().splitlines():
-            if line.startswith('collision_check='):
-                return line.split('=', 1)[1].strip() != '0'
+    if (run / 'run.env').exists():
+        checked = read_run_env(run).get('collision_check')
+        if checked is not None:
+            return checked != '0'
     return all(r.get('collision_check', True) for r in records)
 
 

@@ -30,7 +30,7 @@ import numpy as np
 
 from body_schema.identifiability import average_nees_band
 
-__all__ = ['parse_seeds', 'summarise', 'read_records', 'read_summary', 'main']
+__all__ = ['parse_seeds', 'summarise', 'read_records', 'read_summary', 'read_run_env', 'main']
 
 ROOT = Path(__file__).resolve().parents[1]
 LAUNCHER = ROOT / 'scripts' / 'run_calibration.sh'
@@ -133,6 +133,24 @@ def summarise(records: dict[int, dict[str, Any]], status: dict[int, int], comman
         lines.append(f'- runs that exited non-zero (see `seed_<S>.log`; 1 is the launcher\'s UNHEALTHY RUN): '
                      f'{failed}')
     return '\n'.join(lines) + '\n'
+
+
+def read_run_env(run: Path) -> dict[str, str]:
+    """The launcher's ``run.env`` of a run directory, ``KEY=VALUE`` lines as it writes them (values
+    shell-quoted: ``camera_error=0.02\\ 2`` reads ``'0.02 2'``, ``body_change=''`` reads ``''``).
+
+    Raises
+    ------
+    FileNotFoundError
+        If the run has no ``run.env``.
+    """
+    env = {}
+    for line in (Path(run) / 'run.env').read_text().splitlines():
+        if '=' in line:
+            key, value = line.split('=', 1)
+            words = shlex.split(value)
+            env[key] = words[0] if words else ''
+    return env
 
 
 def read_records(directory: Path) -> dict[int, dict[str, Any]]:

@@ -37,4 +37,4 @@ def test_the_command_names_what_is_missing(tmp_path: Path, capsys) -> None:
     assert f'{tmp_path}: no seed_<S>/calibration.mcap' in capsys.readouterr().err
     law.write_text('noise_model: {depth_ratio: -1}\n')
     assert main([str(tmp_path), '--noise-law', str(law)]) == 2
-    assert 'depth_ratio must be finite and > 0, got -1.0' in capsys.readouterr().err
+    assert f'{law}: noise_model.depth_ratio: must be finite and > 0, got -1' in capsys.readouterr().err

@@ -27,6 +27,7 @@ from . import kinematics
 
 __all__ = [
     'RobotDescriptionError',
+    'parse_noise_law',
     'CameraIntrinsics',
     'MarkerPlacement',
     'EyeChain',
@@ -558,7 +559,7 @@ def robot_from_dict(data: dict[str, Any], source: str = '<dict>', *, propose_box
         # Given on the flange (the URDF's tip link, a modified table's flange row); kept on the hand.
         markers = tuple(dataclasses.replace(m, hand_T_marker=tool @ m.hand_T_marker) for m in markers)
 
-    noise_law, noise_covariance = (_noise_law(data['noise_model'], where + 'noise_model')
+    noise_law, noise_covariance = (parse_noise_law(data['noise_model'], where + 'noise_model')
                                    if 'noise_model' in data else ({}, ''))
 
     obstacles = _obstacles(data['obstacles'], where + 'obstacles', scale) if 'obstacles' in data else ()
@@ -713,8 +714,17 @@ def _urdf_arm(data: dict[str, Any], where: str, source: str) -> dict[str, Any]:
 NOISE_LAW_KEYS: tuple[str, ...] = ('a_pos', 'b_pos', 'floor_pos', 'a_rot', 'b_rot', 'floor_rot', 'depth_ratio')
 
 
-def _noise_law(n: Any, where: str) -> tuple[dict[str, float], str]:
-    """The law's coefficients and the optional ``covariance`` the estimator should use."""
+def parse_noise_law(n: Any, where: str) -> tuple[dict[str, float], str]:
+    """A ``noise_model:`` block: the law's coefficients and the optional ``covariance`` the
+    estimator should use.
+
+    Raises
+    ------
+    RobotDescriptionError
+        Naming ``where`` and the key, for a block that is not a mapping, an unknown key, a value
+        that is not a number or out of its range (coefficients >= 0, ``depth_ratio`` > 0), or an
+        unknown ``covariance``.
+    """
     from .map_estimator import COVARIANCES     # here: map_estimator is a higher layer than robot
 
     if not isinstance(n, dict):
@@ -733,10 +743,9 @@ def _noise_law(n: Any, where: str) -> tuple[dict[str, float], str]:
             law[k] = float(v)
         except (TypeError, ValueError) as exc:
             raise RobotDescriptionError(f'{where}.{k}: must be a number, got {v!r}') from exc
-        if not np.isfinite(law[k]) or law[k] < 0:
-            raise RobotDescriptionError(f'{where}.{k}: must be finite and >= 0, got {v!r}')
-    if law.get('depth_ratio', 1.0) <= 0:
-        raise RobotDescriptionError(f'{where}.depth_ratio: must be > 0, got {n["depth_ratio"]!r}')
+        positive = k == 'depth_ratio'                  # a ratio of standard deviations; the rest may be 0
+        if not np.isfinite(law[k]) or law[k] < 0 or (positive and law[k] == 0):
+            raise RobotDescriptionError(f'{where}.{k}: must be finite and {"> 0" if positive else ">= 0"}, got {v!r}')
     return law, covariance
 
 

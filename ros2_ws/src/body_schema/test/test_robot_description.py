@@ -51,6 +51,8 @@ def test_with_dh_builds_another_model():
     (lambda d: d['hand_markers'].__setitem__('side_length', -1), r'hand_markers\.side_length'),
     (lambda d: d.__setitem__('noise_model', {'a_pos': -1e-7}),
      r"noise_model\.a_pos: must be finite and >= 0, got -1e-07"),
+    (lambda d: d.__setitem__('noise_model', {'depth_ratio': 0}),
+     r"noise_model\.depth_ratio: must be finite and > 0, got 0"),
     (lambda d: d.__setitem__('noise_model', {'a_p0s': 1e-7}), r"noise_model: unknown keys \['a_p0s'\]"),
     (lambda d: d.__setitem__('noise_model', {'b_rot': 'small'}), r"noise_model\.b_rot: must be a number, got 'small'"),
     (lambda d: d.__setitem__('noise_model', [1e-7]), r'noise_model: must be a mapping'),

@@ -54,6 +54,7 @@ import yaml
 from numpy.typing import NDArray
 
 from body_schema import load_robot, sampling
+from body_schema.robot import parse_noise_law
 from body_schema.extrinsics import absorbed_parameters, align_truth, perturb_pose, pose_delta
 from body_schema.identifiability import average_nees_band, subspace_nees
 from body_schema.kinematics import equivalent_table
@@ -476,10 +477,10 @@ def read_noise_law(path: str | Path) -> tuple[tuple[str, float], ...]:
     block = data.get('noise_model') if isinstance(data, dict) else None
     if not isinstance(block, dict):
         raise ValueError(f"{path}: no 'noise_model:' mapping")
+    law, _ = parse_noise_law(block, f'{path}: noise_model')     # a description's parser: same keys, same checks
     try:
-        law = {str(k): float(v) for k, v in block.items() if k != 'covariance'}   # YAML reads 1e-06 as text
-        PoseDependentNoise(**law)
-    except (TypeError, ValueError) as exc:
+        PoseDependentNoise(**law)                                 # and the law's own (a singular covariance)
+    except ValueError as exc:
         raise ValueError(f'{path}: noise_model: {exc}') from exc
     return tuple(law.items())
 

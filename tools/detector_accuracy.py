@@ -302,15 +302,12 @@ def fit_noise(outcome: FrameScores, exclude_flips: bool = True, depth: bool = Fa
     r, phi = outcome.r[ok], outcome.phi[ok]
     sq_p = outcome.pos_err[ok] ** 2
     sq_o = outcome.rot_err[ok] ** 2
-    ratio = 1.0
-    if depth:
-        across, along = depth_split(outcome, ok)
-        (ap, bp, fp), _ = _fit_law(across, r, phi, MIN_FLOOR_POS, dof=2)
-        ratio = float(np.sqrt(np.mean(along / (ap * r ** 2 + bp * (phi - 45.0) ** 2 + fp))))
-    else:
-        (ap, bp, fp), _ = _fit_law(sq_p, r, phi, MIN_FLOOR_POS)
+    across, along = depth_split(outcome, ok) if depth else (sq_p, None)
+    (ap, bp, fp), _ = _fit_law(across, r, phi, MIN_FLOOR_POS, dof=2 if depth else 3)
     (ao, bo, fo), _ = _fit_law(sq_o, r, phi, MIN_FLOOR_ROT)
-    pdn = PoseDependentNoise(ap, bp, ao, bo, fp, fo, ratio)
+    pdn = PoseDependentNoise(ap, bp, ao, bo, fp, fo)
+    if depth:
+        pdn = replace(pdn, depth_ratio=float(np.sqrt(np.mean(along / pdn.variances(r, phi)[0]))))
     cn = ConstantNoise(float(np.sqrt(np.mean(sq_p) / 3)), float(np.sqrt(np.mean(sq_o) / 3)))
     chi95 = 7.814727903251178                       # chi-square(3) 95 % quantile
 

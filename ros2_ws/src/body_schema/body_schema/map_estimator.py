@@ -743,8 +743,12 @@ class MapEstimator:
         rows = [self._prior_rows(x)]
         if self.n_observations:
             rows.append(self._whitened(x, w).ravel())
+        return float(self._robust_cost(np.concatenate(rows)))
+
+    def _robust_cost(self, rows: NDArray[np.float64]) -> NDArray[np.float64]:
+        """``0.5 scale^2 sum rho((rows / scale)^2)`` over the last axis, with the next solve's loss."""
         scale = self.settings.loss_scale
-        return float(0.5 * scale ** 2 * np.sum(_RHO[self._loss()]((np.concatenate(rows) / scale) ** 2)))
+        return 0.5 * scale ** 2 * np.sum(_RHO[self._loss()]((rows / scale) ** 2), axis=-1)
 
     def _prior_rows(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
         """Whitened prior and held-direction residuals at ``x`` (n,) or (K, n), shape (..., n + k)."""
@@ -810,11 +814,10 @@ class MapEstimator:
         it must lower it and keep the data's cost (the construction is exact; the check guards it).
         """
         xs = self.twins()
-        scale = self.settings.loss_scale
-        rho = _RHO[self._loss()]
-        cost = np.sum(rho((self._prior_rows(xs) / scale) ** 2), axis=-1)      # the objective's prior share
-        best = int(np.argmin(cost))
-        if not cost[best] < float(np.sum(rho((self._prior_rows(self.x) / scale) ** 2))) - 1e-9:
+        # The objective's prior share: row 0 the estimate as it stands, then every twin.
+        cost = self._robust_cost(self._prior_rows(np.vstack([self.x[None], xs])))
+        best = int(np.argmin(cost[1:]))
+        if not cost[1 + best] < cost[0] - 1e-9:
             return False
         w = self._effective_whitening()
         before = float(np.sum(self._whitened(self.x, w) ** 2))

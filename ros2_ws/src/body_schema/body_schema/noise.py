@@ -174,8 +174,6 @@ class _Base:
         k = self.depth_ratio
         if hand.ndim == 2:          # one pose: plain indexing (this runs in every cost evaluation)
             best = int(np.argmin(rank)) if np.isfinite(rank.min()) else int(np.argmin(r))
-            if k == 1.0:
-                return _assemble(vp[best], vo[best])
             return line_of_sight_covariance(vp[best], vo[best], poses[best, :3, 3] - camera[:3, 3], k)
         best = np.argmin(rank, axis=-1)
         # No marker facing the camera: fall back to the nearest one seen edge-on.

@@ -561,7 +561,7 @@ class HandPoseEstimator:
                                    for i, s in enumerate(singles)])
         pv = 1.0 / np.sum(1.0 / n_pos)
         rv = 1.0 / np.sum(1.0 / n_rot)
-        cov = line_of_sight_covariance(pv, rv, los[best], self.noise.depth_ratio)
+        cov = line_of_sight_covariance(pv, rv, los[best], ratio)
         if fusion == 'weighted':
             return HandEstimate(weighted.pose, cov, weighted.marker_ids, pv, rv)
         cam_T_hand0 = np.linalg.inv(root) @ singles[best].pose

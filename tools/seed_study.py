@@ -83,6 +83,19 @@ def _within(block: dict[str, Any], k: float) -> tuple[int, int]:
     return sum(abs(e) <= k * s for e, s in pairs), len(pairs)
 
 
+def _innovation_lines(rec: Sequence[dict[str, Any]]) -> list[str]:
+    """The noise law's truth-free check over the runs (``innovations`` of each ``summary.json``)."""
+    inn = [r['innovations'] for r in rec if r.get('innovations')]
+    if not inn:
+        return []
+    beyond, count = sum(i['beyond'] for i in inn), sum(i['count'] for i in inn)
+    p = inn[0]['probability']
+    return [f"- innovations after the warm-up: median NIS per run {_spread([i['median'] for i in inn], '.1f')} "
+            f'(5.3 if the noise law is right, 6 dof); beyond the {p:.2%} bound (the change test\'s) in '
+            f'{beyond} of {count} ({count * (1 - p):.2f} expected), in {sum(i["beyond"] > 0 for i in inn)} of '
+            f'{len(inn)} runs']
+
+
 def summarise(records: dict[int, dict[str, Any]], status: dict[int, int], command: str) -> str:
     """The Markdown summary of ``records`` (seed -> ``summary.json``) and exit ``status`` (seed -> rc)."""
     seeds = sorted(records)
@@ -121,6 +134,7 @@ def summarise(records: dict[int, dict[str, Any]], status: dict[int, int], comman
               f"- final orientation error [deg]: {_spread([r['final']['orientation_deg'] for r in rec], '.3f')}",
               f'- NEES on the identifiable combinations: {_spread(nees, ".1f")}; inside the 95% band in '
               f'{inside} of {sum(v is not None for v in nees)} runs{anees}',
+              *_innovation_lines(rec),
               f"- accepted observations: {_spread([r['outcomes'].get('accepted', 0) for r in rec], '.1f')}",
               f"- wall time per run [s]: {_spread([r['wall_seconds'] for r in rec], '.0f')}"]
     for b in blocks:

@@ -44,6 +44,17 @@ def test_summary_counts_the_band_and_the_sigmas() -> None:
     assert "exited non-zero (see `seed_<S>.log`; 1 is the launcher's UNHEALTHY RUN): [2]" in text
 
 
+def test_summary_adds_up_the_innovations_of_the_runs_that_have_them() -> None:
+    records = {s: _record(0.5, 30.0, [0.0] * 6) for s in (1, 2, 3)}
+    for s, (median, beyond) in ((1, (4.0, 0)), (2, (8.0, 3))):
+        records[s]['innovations'] = {'count': 40, 'median': median, 'beyond': beyond, 'bound': 27.86,
+                                     'probability': 0.9999}
+    text = summarise(records, {}, 'cmd')
+    assert ('median NIS per run mean 6.0, median 6.0, min 4.0, max 8.0' in text
+            and "beyond the 99.99% bound (the change test's) in 3 of 80 (0.01 expected), in 1 of 2 runs" in text)
+    assert 'innovations' not in summarise({1: _record(0.5, 30.0, [0.0] * 6)}, {}, 'cmd')
+
+
 def test_each_seed_runs_once_and_an_existing_summary_is_kept(tmp_path: Path, monkeypatch) -> None:
     calls = tmp_path / 'calls'
     fake = tmp_path / 'run_calibration.sh'

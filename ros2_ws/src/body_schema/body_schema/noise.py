@@ -31,7 +31,7 @@ from numpy.typing import ArrayLike, NDArray
 from .robot import ArmModel, MarkerPlacement
 
 __all__ = ['view_geometry', 'NoiseModel', 'PoseDependentNoise', 'ConstantNoise', 'NOISE_MODELS', 'noise_model',
-           'sample_pose', 'line_of_sight_covariance']
+           'sample_pose', 'line_of_sight_covariance', 'InnovationCheck', 'innovation_check']
 
 #: phi beyond which a marker is seen edge-on or from behind and cannot be detected [deg].
 MAX_VIEW_ANGLE_DEG = 90.0
@@ -293,3 +293,81 @@ def sample_pose(pose: ArrayLike, cov: ArrayLike, rng: np.random.Generator) -> ND
     z[:3, 3] += e[:3]
     z[:3, :3] = Rotation.from_rotvec(e[3:]).as_matrix() @ z[:3, :3]
     return z
+
+
+@dataclass(frozen=True)
+class InnovationCheck:
+    """How a run's innovations compare with what its noise law promises (:func:`innovation_check`).
+
+    Attributes
+    ----------
+    count : int
+        Innovations looked at (those after the skipped warm-up).
+    median : float
+        Their median NIS; 5.35 (the chi-square median, 6 dof) if the law is right.
+    beyond : int
+        How many exceed ``bound``.
+    probability : float
+        The chi-square probability of ``bound``.
+    bound : float
+        The NIS bound, ``chi2.ppf(probability, 6)``.
+    """
+
+    count: int
+    median: float
+    beyond: int
+    probability: float
+    bound: float
+
+    @property
+    def expected_beyond(self) -> float:
+        """How many of :attr:`count` a consistent law puts beyond :attr:`bound`."""
+        return self.count * (1.0 - self.probability)
+
+    def text(self) -> str:
+        """One line for a report."""
+        return (f'innovations after the warm-up: median NIS {self.median:.1f} (5.3 if the noise law is right, '
+                f'6 dof), beyond the {self.probability:.2%} bound in {self.beyond} of {self.count} '
+                f'({self.expected_beyond:.3f} expected; the change test counts these)')
+
+
+def innovation_check(nis: Sequence[float], skip: int = 0, probability: float = 0.9999) -> InnovationCheck | None:
+    """The truth-free consistency check of a noise law: a run's normalised innovations squared.
+
+    Each update's innovation ``y`` (observed minus predicted hand pose, 6 components) with its
+    predicted covariance ``S = H P H^T + R`` gives ``NIS = y^T S^-1 y``, chi-square with 6 dof when
+    the law's ``R`` and the estimate's ``P`` are right. A law that understates the detector's
+    tails puts far more than ``1 - probability`` of them beyond the bound, and the MAP estimator's
+    change test, which counts exceedances of that bound, then raises false alarms.
+
+    Parameters
+    ----------
+    nis : sequence of float, length N
+        NIS of each update, in order (``dh_estimator``'s ``OnlineEstimator.innovations``).
+    skip : int
+        Leading updates left out: the warm-up, whose innovations are large because the guess is
+        far (the change test ignores them too).
+    probability : float
+        Chi-square probability of the bound, in (0, 1) (the change test's ``change_probability``).
+
+    Returns
+    -------
+    InnovationCheck or None
+        None if no innovation remains after ``skip``.
+
+    Raises
+    ------
+    ValueError
+        If ``skip`` is negative or ``probability`` is not in (0, 1).
+    """
+    from scipy.stats import chi2
+
+    if skip < 0:
+        raise ValueError(f'innovation_check: skip must be >= 0, got {skip}')
+    if not 0.0 < probability < 1.0:
+        raise ValueError(f'innovation_check: probability must be in (0, 1), got {probability}')
+    v = np.asarray(nis, dtype=float)[skip:]
+    if v.size == 0:
+        return None
+    bound = float(chi2.ppf(probability, 6))
+    return InnovationCheck(int(v.size), float(np.median(v)), int(np.sum(v > bound)), probability, bound)

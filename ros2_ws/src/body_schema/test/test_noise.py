@@ -93,3 +93,20 @@ def test_a_depth_ratio_stretches_the_position_along_the_line_of_sight():
                                   covs[:, 3:, 3:])
     with pytest.raises(ValueError, match='depth_ratio must be finite and > 0, got 0.0'):
         PoseDependentNoise(depth_ratio=0.0)
+
+
+def test_innovation_check_counts_past_the_warm_up_against_the_chi_square_bound():
+    from scipy.stats import chi2
+
+    from body_schema.noise import innovation_check
+
+    nis = chi2.rvs(6, size=20000, random_state=np.random.default_rng(2))
+    c = innovation_check(np.concatenate([[1e6] * 5, nis]), skip=5, probability=0.99)
+    assert c.count == 20000 and abs(c.median - chi2.median(6)) < 0.15
+    assert abs(c.beyond - 200) < 45 and c.expected_beyond == pytest.approx(200)
+    assert c.bound == pytest.approx(16.81, abs=0.01)
+    assert 'beyond the 99.00% bound in' in c.text() and 'of 20000 (200.000 expected' in c.text()
+    assert innovation_check([3.0, 4.0], skip=2) is None
+    for kw, words in (({'skip': -1}, 'skip must be >= 0, got -1'), ({'probability': 1.0}, 'in \\(0, 1\\), got 1.0')):
+        with pytest.raises(ValueError, match=words):
+            innovation_check([1.0], **kw)

@@ -140,7 +140,9 @@ def summary_record(ev: Evaluation, title: str, wall_seconds: float | None,
     ``initial`` / ``final`` / ``online`` (``position_mm``, ``orientation_deg``), ``information_limit``,
     ``movement_deg``, ``identifiable``, ``parameters``, ``nees_identifiable``, ``nees_band`` (95 %),
     ``unidentifiable``, ``extrinsics`` (block -> ``error`` and ``sigma``, mm and deg),
-    ``max_online_offline_difference``, ``safety`` (:func:`safety_record`, when given).
+    ``max_online_offline_difference``, ``innovations`` (``count``, ``median`` NIS, ``beyond`` its
+    ``bound`` of chi-square ``probability``; None without updates after the warm-up), ``safety``
+    (:func:`safety_record`, when given).
     """
     def num(v: float) -> float | None:
         return None if v is None or not math.isfinite(v) else float(v)
@@ -162,6 +164,9 @@ def summary_record(ev: Evaluation, title: str, wall_seconds: float | None,
         'extrinsics': {k: {'error': [num(v) for v in e], 'sigma': [num(v) for v in sg]}
                        for k, (e, sg) in ev.extrinsics.items()},
         'max_online_offline_difference': num(ev.max_online_offline_difference),
+        'innovations': None if ev.innovations is None else {
+            'count': ev.innovations.count, 'median': num(ev.innovations.median), 'beyond': ev.innovations.beyond,
+            'bound': ev.innovations.bound, 'probability': ev.innovations.probability},
         **({'safety': safety} if safety is not None else {}),
     }
 

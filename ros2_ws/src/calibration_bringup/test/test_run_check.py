@@ -83,3 +83,18 @@ def test_the_command_exits_1_and_says_why(tmp_path: Path) -> None:
     assert bad.returncode == 1 and 'UNHEALTHY RUN' in bad.stderr and '2.00e-02' in bad.stderr, bad.stderr
     ok = subprocess.run([*cmd, '--max-dh-difference', '0.05'], capture_output=True, text=True, timeout=60)
     assert ok.returncode == 0, ok.stderr
+
+
+def test_the_summary_record_carries_the_innovation_check_seed_study_adds_up() -> None:
+    from body_schema.noise import innovation_check
+    from calibration_bringup.report import summary_record
+
+    rows = _rows(['accepted'] * 4)
+    dh = np.zeros((7, 4))
+    ev = Evaluation(rows=rows, final_dh=dh, online_final_dh=dh, true_dh=dh, counters={'updates': 4, 'rejected': 0},
+                    strategy='al', innovations=innovation_check([100.0, 3.0, 40.0, 5.0], skip=1))
+    assert summary_record(ev, 't', None)['innovations'] == {
+        'count': 3, 'median': 5.0, 'beyond': 1, 'bound': pytest.approx(27.856, abs=1e-3), 'probability': 0.9999}
+    assert 'beyond the 99.99% bound in 1 of 3' in summary_text(ev)
+    ev.innovations = None
+    assert summary_record(ev, 't', None)['innovations'] is None

@@ -228,6 +228,9 @@ class OnlineEstimator:
             self.hand = ekf_mod.HandPoseModel(model.base, model.n_joints)
         self.last_config: NDArray[np.float64] | None = None
         self.n_duplicates = 0
+        #: NIS (squared Mahalanobis distance, 6 dof) of every update's innovation, in order (since
+        #: this object was made; not checkpointed): the noise law's check that needs no truth.
+        self.innovations: list[float] = []
 
     @property
     def x(self) -> NDArray[np.float64]:
@@ -322,6 +325,7 @@ class OnlineEstimator:
         if self.map is not None:
             u = self.map.update(q, pose, R)
             self.last_config = q.copy()
+            self.innovations.append(u.nis)
             return Outcome.OUTLIER if u.outlier else Outcome.ACCEPTED
         x, P = self.ekf.x, self.ekf.P  # noqa: N806
         self.ekf.gate = self.gate if self.ekf.n_updates >= self.settings.gate_warmup else None
@@ -332,6 +336,7 @@ class OnlineEstimator:
             self.ekf.x, self.ekf.P = x, P       # undo predict: bad input changes nothing
             raise
         self.last_config = q.copy()
+        self.innovations.append(self.ekf.mahalanobis ** 2)
         if not ok:
             self.ekf.x, self.ekf.P = x, P       # a gated-out attempt also leaves P as it was
         return Outcome.ACCEPTED if ok else Outcome.REJECTED

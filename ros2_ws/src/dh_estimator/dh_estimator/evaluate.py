@@ -60,7 +60,7 @@ from body_schema.identifiability import average_nees_band, subspace_nees
 from body_schema.kinematics import equivalent_table
 from body_schema.map_estimator import COVARIANCES, LOSSES
 from body_schema.metrics import PoseErrorEvaluator, expected_pose_errors
-from body_schema.noise import NOISE_MODELS, PoseDependentNoise
+from body_schema.noise import NOISE_MODELS, InnovationCheck, PoseDependentNoise, innovation_check
 from calibration_interfaces import mcap_reader
 from calibration_interfaces.contract import PUBLISH_TIME_SOURCE
 from calibration_interfaces.messages import msg_to_covariance, msg_to_extrinsics, msg_to_table
@@ -163,6 +163,9 @@ class Evaluation:
     #: gauge) and one-sigma, 6 each (mm, mm, mm, deg, deg, deg); the truth from
     #: ``/body_schema/true_extrinsics`` (absent from older bags: error NaN).
     extrinsics: dict[str, tuple[tuple[float, ...], tuple[float, ...]]] = field(default_factory=dict)
+    #: The re-run's innovations against its noise law (the check that needs no truth); None if
+    #: no update followed the warm-up.
+    innovations: InnovationCheck | None = None
 
     @property
     def outcome_counts(self) -> dict[str, int]:
@@ -331,10 +334,14 @@ def evaluate_bag(path: str | Path, settings: EvaluationSettings = EvaluationSett
     true_x, extrinsic_errors = true_state(estimator, true_dh, true_extrinsics)
     nees = (subspace_nees(estimator.x - true_x, estimator.P, ident.identifiable_basis)
             if true_x is not None else float('nan'))
+    es = settings.estimator
+    map_estimator = es.estimator == 'map'
+    innovations = innovation_check(estimator.innovations, es.warmup if map_estimator else es.gate_warmup,
+                                   es.change_probability if map_estimator and es.change_probability > 0 else 0.9999)
     return Evaluation(rows, estimator.dh.copy(), x0 if online is None else online, true_dh,
                       estimator.counters, strategy, bag, dict(feeder.pairer.counters),
                       tuple(ident.describe()) if ident.n_unidentifiable else (), ident.rank, nees,
-                      len(ident.names), extrinsic_errors)
+                      len(ident.names), extrinsic_errors, innovations)
 
 
 def true_state(estimator: OnlineEstimator, true_dh: NDArray[np.float64],
@@ -441,6 +448,7 @@ def summary_text(ev: Evaluation) -> str:
             '(the error the final covariance implies over the calibration box)\n'
             f'accumulated movement {last.movement_deg:.0f} deg; max |offline - online| DH difference '
             f'{ev.max_online_offline_difference:.2e}'
+            + (f'\n{ev.innovations.text()}' if ev.innovations is not None else '')
             + identifiability_text(ev))
 
 

@@ -309,3 +309,33 @@ def test_export_of_a_urdf_description_writes_its_urdf_corrected(tmp_path):
     # a URDF description is a DH file too (the simulator's true_dh_file, the estimator's initial guess)
     np.testing.assert_allclose(read_dh_file(body_schema.robot.robot_path('panda'), 7).dh, panda.dh)
     assert 'modified_dh' not in yaml.safe_load((tmp_path / 'calibrated_dh.yaml').read_text())
+
+
+
+def test_innovations_follow_chi_square_when_the_noise_law_is_right_and_not_when_it_is_too_sure(arm):
+    from body_schema.noise import innovation_check, sample_pose
+
+    rng = np.random.default_rng(5)
+    qs = sampling.uniform_configs(arm.calibration_box, 80, 6)
+    zs = [sample_pose(arm.forward_kinematics(q), R, rng) for q in qs]
+    checks = {}
+    for name, stated in (('right', R), ('too sure', R / 25)):
+        est = _estimator(arm)
+        for q, z in zip(qs, zs):
+            est.offer(q, z, stated)
+        assert len(est.innovations) == est.counters['updates'] == len(qs)
+        checks[name] = innovation_check(est.innovations, skip=20)
+    right, sure = checks['right'], checks['too sure']
+    assert right.count == 60 and 3.5 < right.median < 7.5 and right.beyond <= 1      # chi-square, 6 dof
+    assert sure.median > 25 * 3.5 and sure.beyond > 30
+
+
+def test_the_ekf_records_the_innovation_of_every_update_gated_or_not(arm):
+    est = _estimator(arm, estimator='ekf', gate_probability=0.99, gate_warmup=0)
+    q = np.mean(arm.calibration_box, axis=1)
+    est.offer(q, arm.forward_kinematics(q), R)
+    z = arm.forward_kinematics(q + 0.1)
+    z[:3, 3] += 1.0
+    assert est.offer(q + 0.1, z, R) is Outcome.REJECTED
+    assert len(est.innovations) == 2 and est.innovations[1] == pytest.approx(est.mahalanobis ** 2)
+    assert est.innovations[1] > 1e3

@@ -465,6 +465,10 @@ def test_another_noise_law_replaces_the_recorded_covariances(tmp_path: Path, cap
         assert np.sort(np.linalg.eigvalsh(cov[:3, :3])) == pytest.approx([1e-6, 1e-6, 9e-6])
     # Ten times the recorded standard deviations and more: the information limit far wider.
     assert wide.rows[-1].expected_position_mm > 10.0 * recorded.rows[-1].expected_position_mm
+    # The innovations past the warm-up (10 updates) are checked against the change test's bound.
+    assert recorded.innovations.count == wide.innovations.count == 8
+    assert recorded.innovations.bound == pytest.approx(27.86, abs=0.01)
+    assert 'innovations after the warm-up: median NIS' in summary_text(wide)
     # The command line reads the block tools.fit_noise prints, and names a file without one.
     good, bad = tmp_path / 'law.yaml', tmp_path / 'bad.yaml'
     good.write_text('noise_model: {' + ', '.join(f'{k}: {v}' for k, v in law.items()) + ', covariance: sandwich}\n')

@@ -328,7 +328,7 @@ class InnovationCheck:
         """One line for a report."""
         return (f'innovations after the warm-up: median NIS {self.median:.1f} (5.3 if the noise law is right, '
                 f'6 dof), beyond the {self.probability:.2%} bound in {self.beyond} of {self.count} '
-                f'({self.expected_beyond:.3f} expected; the change test counts these)')
+                f'({self.expected_beyond:.3f} expected)')
 
 
 def innovation_check(nis: Sequence[float], skip: int = 0, probability: float = 0.9999) -> InnovationCheck | None:

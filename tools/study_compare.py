@@ -39,16 +39,27 @@ class Study:
 
 
 def load_study(path: Path, name: str | None = None) -> Study:
-    """A study from its output directory (``seed_<S>/summary.json``) or a ``summary.md``.
+    """A study from its output directory (``seed_<S>/summary.json``) or a ``summary.md``; or from
+    several, joined by ``+`` (``a/summary.md+results/more-seeds``: one study run in parts, e.g.
+    its last seeds in another session), none of which may hold a seed another holds.
 
     Raises
     ------
     FileNotFoundError
-        If ``path`` does not exist.
+        If ``path`` (or a part) does not exist.
     ValueError
-        If a directory holds no ``seed_<S>/summary.json``, or a file no seed row (the message names ``path``).
+        If a directory holds no ``seed_<S>/summary.json``, a file no seed row, or two parts the same
+        seed (the message names the path).
     """
     path = Path(path)
+    if not path.exists() and '+' in str(path):
+        records: dict[int, dict[str, Any]] = {}
+        for part in str(path).split('+'):
+            more = load_study(Path(part)).records
+            if common := sorted(set(records) & set(more)):
+                raise ValueError(f'study {path}: seeds {common} are in {part} and in an earlier part')
+            records.update(more)
+        return Study(name or str(path), records)
     if not path.exists():
         raise FileNotFoundError(f'study {path}: no such file or directory')
     if path.is_dir():
@@ -121,7 +132,8 @@ def compare(studies: Sequence[Study]) -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog='python -m tools.study_compare', description=__doc__.split('\n\n')[0])
-    ap.add_argument('studies', nargs='+', type=Path, help='the baseline first: seed_study directories or summary.md files')
+    ap.add_argument('studies', nargs='+', type=Path,
+                    help='the baseline first: seed_study directories or summary.md files (parts of one study joined by +)')
     ap.add_argument('--names', nargs='+', help='a short name per study (default: the paths)')
     ap.add_argument('--output', type=Path, help='also write the comparison here')
     args = ap.parse_args(argv)

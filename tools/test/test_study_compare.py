@@ -86,3 +86,15 @@ def test_bad_inputs_exit_2_naming_them(tmp_path: Path, capsys) -> None:
         main([str(base), str(other), '--names', 'only-one'])
     with pytest.raises(ValueError, match='at least one other study'):
         compare([load_study(base)])
+
+
+def test_a_study_in_parts_joins_its_seeds_and_refuses_one_seed_twice(tmp_path: Path) -> None:
+    md = tmp_path / 'first.md'
+    md.write_text(summarise(load_study(_study_dir(tmp_path / 'first', {1: 0.31, 2: 0.46})).records, {}, 'cmd'))
+    more = _study_dir(tmp_path / 'more', {3: 0.52})
+    joined = load_study(Path(f'{md}+{more}'), 'joined')
+    assert sorted(joined.records) == [1, 2, 3] and joined.records[3]['final']['position_mm'] == 0.52
+    with pytest.raises(ValueError, match=r'seeds \[3\] are in .*more and in an earlier part'):
+        load_study(Path(f'{more}+{md}+{more}'))
+    with pytest.raises(FileNotFoundError, match='gone.md: no such file'):
+        load_study(Path(f'{md}+{tmp_path / "gone.md"}'))

@@ -91,7 +91,7 @@ def _innovation_lines(rec: Sequence[dict[str, Any]]) -> list[str]:
     beyond, count = sum(i['beyond'] for i in inn), sum(i['count'] for i in inn)
     p = inn[0]['probability']
     return [f"- innovations after the warm-up: median NIS per run {_spread([i['median'] for i in inn], '.1f')} "
-            f'(5.3 if the noise law is right, 6 dof); beyond the {p:.2%} bound (the change test\'s) in '
+            f'(5.3 if the noise law is right, 6 dof); beyond the {p:.2%} bound in '
             f'{beyond} of {count} ({count * (1 - p):.2f} expected), in {sum(i["beyond"] > 0 for i in inn)} of '
             f'{len(inn)} runs']
 

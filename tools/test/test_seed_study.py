@@ -51,7 +51,7 @@ def test_summary_adds_up_the_innovations_of_the_runs_that_have_them() -> None:
                                      'probability': 0.9999}
     text = summarise(records, {}, 'cmd')
     assert ('median NIS per run mean 6.0, median 6.0, min 4.0, max 8.0' in text
-            and "beyond the 99.99% bound (the change test's) in 3 of 80 (0.01 expected), in 1 of 2 runs" in text)
+            and "beyond the 99.99% bound in 3 of 80 (0.01 expected), in 1 of 2 runs" in text)
     assert 'innovations' not in summarise({1: _record(0.5, 30.0, [0.0] * 6)}, {}, 'cmd')
 
 

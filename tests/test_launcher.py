@@ -339,7 +339,9 @@ def test_plan_only_moves_nothing_and_a_run_visits_the_reviewed_poses_first(tmp_p
     out = tmp_path / 'run'
     proc = subprocess.run([str(SCRIPT), '--poses', str(plan_dir / 'plan.yaml'), '--iterations', '3',
                            '--speed-scale', '0.5', '--output', str(out), *FAST,
-                           '--max-dh-difference', '1000'],    # the re-run's agreement is not this test's subject
+                           # Neither the re-run's agreement nor the estimator keeping up at --rtf 2 is this
+                           # test's subject (under the whole suite's load one of the 3 verdicts came late).
+                           '--max-dh-difference', '1000', '--max-timeouts', '1.0'],
                           env=_env(), capture_output=True,
                           text=True, timeout=400)
     assert proc.returncode == 0, proc.stderr + (out / 'logs' / 'selector.log').read_text()[-2000:]

@@ -64,12 +64,14 @@ def runs_of(paths: Sequence[Path]) -> list[Path]:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    from body_schema.map_estimator import MapSettings
     from body_schema.noise import innovation_check
 
     ap = argparse.ArgumentParser(prog='python -m tools.innovations', description=__doc__.split('\n\n')[0])
     ap.add_argument('paths', type=Path, nargs='+', help='run directories or seed_study directories')
-    ap.add_argument('--skip', type=int, default=10, help="updates of the warm-up left out (the MAP's warmup)")
-    ap.add_argument('--probability', type=float, default=0.9999,
+    ap.add_argument('--skip', type=int, default=MapSettings.warmup,
+                    help="updates of the warm-up left out (the MAP's warmup)")
+    ap.add_argument('--probability', type=float, default=MapSettings.change_probability,
                     help="chi-square probability of the bound (the change test's change_probability)")
     args = ap.parse_args(argv)
     try:

@@ -58,7 +58,7 @@ from body_schema.robot import parse_noise_law
 from body_schema.extrinsics import absorbed_parameters, align_truth, perturb_pose, pose_delta
 from body_schema.identifiability import average_nees_band, subspace_nees
 from body_schema.kinematics import equivalent_table
-from body_schema.map_estimator import COVARIANCES, LOSSES
+from body_schema.map_estimator import COVARIANCES, LOSSES, MapSettings
 from body_schema.metrics import PoseErrorEvaluator, expected_pose_errors
 from body_schema.noise import NOISE_MODELS, InnovationCheck, PoseDependentNoise, innovation_check
 from calibration_interfaces import mcap_reader
@@ -336,8 +336,10 @@ def evaluate_bag(path: str | Path, settings: EvaluationSettings = EvaluationSett
             if true_x is not None else float('nan'))
     es = settings.estimator
     map_estimator = es.estimator == 'map'
+    # Against the change test's bound; the EKF (no change test) and a MAP without one: its default's.
     innovations = innovation_check(estimator.innovations, es.warmup if map_estimator else es.gate_warmup,
-                                   es.change_probability if map_estimator and es.change_probability > 0 else 0.9999)
+                                   es.change_probability if map_estimator and es.change_probability > 0
+                                   else MapSettings.change_probability)
     return Evaluation(rows, estimator.dh.copy(), x0 if online is None else online, true_dh,
                       estimator.counters, strategy, bag, dict(feeder.pairer.counters),
                       tuple(ident.describe()) if ident.n_unidentifiable else (), ident.rank, nees,

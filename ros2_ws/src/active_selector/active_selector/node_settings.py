@@ -34,9 +34,9 @@ class SelectorNodeSettings:
                                              'subscriber (the recorder, which subscribes to /arm/command in the '
                                              'same pass): a recorder that matches late loses the first commands')
     wait_for_estimator: bool = setting(False, 'Select the first target only once /body_schema/estimate has '
-                                              'arrived, whatever the strategy (the estimator publishes it on its '
-                                              'first joint state): an attempt before that is dropped online but '
-                                              "used by the bag's re-run")
+                                              'arrived, whatever the strategy (the estimator publishes it once it has '
+                                              'a joint state and a matched /hand_pose publisher): an attempt before '
+                                              "that is lost online but used by the bag's re-run")
     resume: bool = setting(False, 'Continue the run recorded in progress_file (its iterations count, its '
                                   'attempts teach the occlusion model) instead of starting it anew')
     wait_report_period: float = setting(2.0, 'Wall seconds between "waiting for" reports', (0.1, 3600.0))

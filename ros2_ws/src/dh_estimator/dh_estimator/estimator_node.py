@@ -22,9 +22,12 @@ Publications
 ------------
 /body_schema/estimate : std_msgs/Float64MultiArray (reliable, transient local)
     7 x 4 DH table (a, d, alpha, offset), after every attempt. The initial one (with the covariance
-    and the description) only once the first joint state has arrived: it says the estimator can
-    pair observations, and a selector waits for it before its first command (an attempt stamped
-    before the estimator's first joint state would be dropped online but used by the bag's re-run).
+    and the description) only once the first joint state has arrived and a ``/hand_pose``
+    publisher is matched: it says the estimator can pair observations, and a selector waits for
+    it before its first command (an attempt stamped before the estimator's first joint state, or
+    imaged before its subscription matched the detector, would be lost online but used by the
+    bag's re-run, whose recorder started first: a launched run under load missed its first
+    attempt so, and the run check called it unhealthy).
 /body_schema/covariance : std_msgs/Float64MultiArray (reliable, transient local)
     28 x 28 covariance, row-major, same order; with ``camera_prior`` / ``marker_prior`` the
     camera's and the marker's 6-D corrections follow the table (34 or 40 square for the iCub; the
@@ -128,10 +131,11 @@ class EstimatorNode(Node):
         self.pub_status = self.create_publisher(DiagnosticStatus, '/body_schema/update_status',
                                                 qos_profile('/body_schema/update_status'))
         self.create_subscription(JointState, '/joint_states', self.on_joint_state, JOINT_STATES_QOS)
-        self.create_subscription(PoseWithCovarianceStamped, '/hand_pose', self.on_hand_pose, qos_profile('/hand_pose'))
+        self.sub_hand_pose = self.create_subscription(PoseWithCovarianceStamped, '/hand_pose', self.on_hand_pose,
+                                                      qos_profile('/hand_pose'))
         self.create_subscription(JointTrajectory, '/arm/command', self.on_command, qos_profile(RELIABLE))
         self.create_service(Trigger, '~/export', self.on_export)
-        self._announced = False                     # the initial estimate waits for the first joint state
+        self._announced = False     # the initial estimate waits for a joint state and a hand-pose publisher
         extras = self.estimator.extrinsics
         self.get_logger().info(f'estimating {self.model.n_params} DH parameters of {self.model.name} '
                                + (f'with the {" and ".join(extras.blocks)} pose ({extras.n} more) '
@@ -173,7 +177,12 @@ class EstimatorNode(Node):
     def on_joint_state(self, msg: JointState) -> None:
         self._feed('/joint_states', msg)
         if not self._announced and self.pairer.buffer.latest is not None:
-            self.publish_estimate()
+            # Matched, not merely discovered: a hand pose published before the match is lost.
+            if self.sub_hand_pose.get_publisher_count() > 0:
+                self.publish_estimate()
+            else:
+                self.get_logger().info('joint states heard; waiting for a /hand_pose publisher before '
+                                       'announcing the initial estimate', once=True)
 
     def on_command(self, msg: JointTrajectory) -> None:
         self._feed('/arm/command', msg)

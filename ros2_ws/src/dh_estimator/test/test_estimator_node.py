@@ -51,10 +51,11 @@ def _setup(ros, **params):
     return node, js, hp, estimates
 
 
-def test_the_initial_estimate_waits_for_the_first_joint_state(ros):
+def test_the_initial_estimate_waits_for_a_joint_state_and_a_hand_pose_publisher(ros):
     """The estimate is the estimator's "I can pair observations": a selector waiting for it never
-    commands an attempt the estimator would drop for want of joint states (the bag's re-run,
-    whose recorder heard the arm earlier, would use it, and the run check call the run unhealthy)."""
+    commands an attempt the estimator would lose for want of joint states or of a matched
+    detector (the bag's re-run, whose recorder heard both earlier, would use it, and the run check
+    call the run unhealthy: a launched EKF run in CI lost its first attempt so)."""
     node = ros.add(EstimatorNode(context=ros.context, parameter_overrides=[
         Parameter('initial_seed', value=4), Parameter('export_on_shutdown', value=False)]))
     probe = ros.node('probe')
@@ -69,6 +70,11 @@ def test_the_initial_estimate_waits_for_the_first_joint_state(ros):
     ros.spin_for(0.3)
     assert estimates == []
     js.publish(_joint_state(0.0, np.mean(ARM.calibration_box, axis=1)))
+    ros.spin_for(0.5)
+    assert estimates == []                                     # joint states, but nobody to see the hand
+    hp = probe.create_publisher(PoseWithCovarianceStamped, '/hand_pose', qos_profile('/hand_pose'))
+    ros.spin_until(lambda: hp.get_subscription_count(), 10.0, 'the hand-pose match')
+    js.publish(_joint_state(0.05, np.mean(ARM.calibration_box, axis=1)))
     ros.spin_until(lambda: estimates, 5.0, 'the initial estimate')
     np.testing.assert_allclose(msg_to_table(estimates[0]), node.estimator.dh)
     js.publish(_joint_state(0.1, np.mean(ARM.calibration_box, axis=1)))

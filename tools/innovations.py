@@ -4,8 +4,9 @@ Every estimator verdict on ``/body_schema/update_status`` carries the Mahalanobi
 observation's innovation; an update's NIS is its square (chi-square, 6 dof, if the law is right).
 This command reads them from each run's ``calibration.mcap`` (seconds per bag, where ``evaluate``
 re-runs the estimator for the same figures) and prints, per run and over all, the median NIS
-after the warm-up and how many lie beyond the change test's bound
-(:func:`body_schema.noise.innovation_check`). A bag whose offline re-run equals the online estimate
+after the warm-up, how many lie beyond the change test's bound
+(:func:`body_schema.noise.innovation_check`) and which of the launcher's health-check tests of
+the law they fail (``tails``, ``median``: :meth:`body_schema.noise.InnovationCheck.findings`). A bag whose offline re-run equals the online estimate
 gives the figures the run's report states.
 
 Usage (from the repository root)::
@@ -81,11 +82,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (OSError, ValueError) as exc:
         print(f'innovations: {exc}', file=sys.stderr)
         return 2
-    print(f'| run | updates | after the warm-up | median NIS | beyond the {args.probability:.2%} bound |')
-    print('|---|---|---|---|---|')
+    print(f'| run | updates | after the warm-up | median NIS | beyond the {args.probability:.2%} bound '
+          '| against the law (p < 0.001) |')
+    print('|---|---|---|---|---|---|')
     for r, c in checks.items():
-        print(f'| {r} | {len(nis[r])} | ' + ('0 | n/a | n/a |' if c is None else
-                                             f'{c.count} | {c.median:.1f} | {c.beyond} |'))
+        print(f'| {r} | {len(nis[r])} | ' + ('0 | n/a | n/a | n/a |' if c is None else
+                                             f'{c.count} | {c.median:.1f} | {c.beyond} | '
+                                             f'{", ".join(c.findings()) or "none"} |'))
     done = [c for c in checks.values() if c is not None]
     if done:
         count, beyond = sum(c.count for c in done), sum(c.beyond for c in done)
@@ -93,7 +96,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f'\nOver {len(done)} runs: median NIS per run mean {medians.mean():.1f}, median {np.median(medians):.1f} '
               f'(5.3 if the noise law is right); beyond the bound in {beyond} of {count} '
               f'({beyond / count:.1%}; a right law: {1 - args.probability:.2%}), in {sum(c.beyond > 0 for c in done)} '
-              f'of {len(done)} runs')
+              f'of {len(done)} runs; the health check cautions against the law in '
+              f'{sum(bool(c.findings()) for c in done)} of {len(done)} runs')
     return 0
 
 

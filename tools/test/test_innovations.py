@@ -35,8 +35,9 @@ def test_updates_are_read_back_and_summed_over_a_study(tmp_path: Path, capsys) -
     assert [r.name for r in runs_of([tmp_path / 'study'])] == ['seed_2', 'seed_10']
     assert main([str(tmp_path / 'study'), '--skip', '3']) == 0
     out = capsys.readouterr().out
-    assert f'| {tmp_path / "study" / "seed_2"} | 5 | 2 | 20.0 | 1 |' in out       # 36 > 27.86
+    assert f'| {tmp_path / "study" / "seed_2"} | 5 | 2 | 20.0 | 1 | tails |' in out   # 36 > 27.86
     assert 'beyond the bound in 1 of 3 (33.3%; a right law: 0.01%), in 1 of 2 runs' in out
+    assert 'the health check cautions against the law in 1 of 2 runs' in out
 
 
 def test_a_path_that_is_no_run_is_named(tmp_path: Path, capsys) -> None:

@@ -52,6 +52,8 @@ def test_summary_adds_up_the_innovations_of_the_runs_that_have_them() -> None:
     text = summarise(records, {}, 'cmd')
     assert ('median NIS per run mean 6.0, median 6.0, min 4.0, max 8.0' in text
             and "beyond the 99.99% bound in 3 of 80 (0.01 expected), in 1 of 2 runs" in text)
+    # seed 2's 3 exceedances and its median of 8 fail both of the health check's tests; seed 1 none
+    assert 'the health check cautions against the law in 1 of 2' in text
     assert 'innovations' not in summarise({1: _record(0.5, 30.0, [0.0] * 6)}, {}, 'cmd')
 
 

@@ -330,6 +330,75 @@ class InnovationCheck:
                 f'6 dof), beyond the {self.probability:.2%} bound in {self.beyond} of {self.count} '
                 f'({self.expected_beyond:.3f} expected)')
 
+    def tail_p_value(self) -> float:
+        """Chance of :attr:`beyond` or more exceedances under a right law (Poisson, mean
+        :attr:`expected_beyond`); 1.0 when there is none."""
+        from scipy.stats import poisson
+
+        return float(poisson.sf(self.beyond - 1, self.expected_beyond)) if self.beyond > 0 else 1.0
+
+    def high_median_p_value(self) -> float:
+        """Chance under a right law of a median NIS as high as :attr:`median` or higher.
+
+        A median at least ``m`` needs at least ``ceil(count / 2)`` of the NIS at or above ``m``
+        (odd or even count), each with chi-square(6) probability ``sf(m)``: the binomial tail,
+        an upper bound of the p-value.
+        """
+        from scipy.stats import binom, chi2
+
+        return float(binom.sf(-(-self.count // 2) - 1, self.count, chi2.sf(self.median, 6)))
+
+    def findings(self, alpha: float = 1e-3) -> list[str]:
+        """The tests the law fails at significance ``alpha``: ``'tails'`` (too many exceedances,
+        :meth:`tail_p_value`) and ``'median'`` (too high a median, :meth:`high_median_p_value`).
+
+        Raises
+        ------
+        ValueError
+            If ``alpha`` is not in (0, 1).
+        """
+        if not 0.0 < alpha < 1.0:
+            raise ValueError(f'InnovationCheck: alpha must be in (0, 1), got {alpha}')
+        return [name for name, p in (('tails', self.tail_p_value()), ('median', self.high_median_p_value()))
+                if p < alpha]
+
+    def cautions(self, alpha: float = 1e-3) -> list[str]:
+        """What the innovations say against the noise law, at significance ``alpha``.
+
+        Two findings make the covariance of the estimate optimistic: exceedances of the bound far
+        beyond the expected count (the law is too sure of some observations: a heavy-tailed
+        detector; the change test then raises false alarms) and a median NIS above the
+        chi-square median (the law understates the typical error). A median below it alone (a
+        cautious law) is not reported: it costs precision, not trust.
+
+        Parameters
+        ----------
+        alpha : float
+            Significance of each test, in (0, 1).
+
+        Returns
+        -------
+        list of str
+            One sentence per finding; empty when the innovations agree with the law.
+
+        Raises
+        ------
+        ValueError
+            If ``alpha`` is not in (0, 1).
+        """
+        found = self.findings(alpha)
+        out = []
+        if 'tails' in found:
+            out.append(f'{self.beyond} of {self.count} innovations beyond the {self.probability:.2%} bound '
+                       f'({self.expected_beyond:.3f} expected, p = {self.tail_p_value():.1e}): the noise law is '
+                       'too sure of some observations (heavier tails than it assumes), so the final covariance, '
+                       'NEES and information limit are optimistic and the change test can raise false alarms')
+        if 'median' in found:
+            out.append(f'median NIS {self.median:.1f} against 5.3 for a right law (p = '
+                       f'{self.high_median_p_value():.1e}): the noise law understates the typical error, so the '
+                       'final covariance, NEES and information limit are optimistic')
+        return out
+
 
 def innovation_check(nis: Sequence[float], skip: int = 0, probability: float = 0.9999) -> InnovationCheck | None:
     """The truth-free consistency check of a noise law: a run's normalised innovations squared.

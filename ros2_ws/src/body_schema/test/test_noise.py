@@ -110,3 +110,24 @@ def test_innovation_check_counts_past_the_warm_up_against_the_chi_square_bound()
     for kw, words in (({'skip': -1}, 'skip must be >= 0, got -1'), ({'probability': 1.0}, 'in \\(0, 1\\), got 1.0')):
         with pytest.raises(ValueError, match=words):
             innovation_check([1.0], **kw)
+
+
+def test_innovation_check_p_values_match_their_distributions():
+    """The tail p-value is the Poisson chance of as many exceedances; the median's is an upper
+    bound of the chance of as high a median, checked by simulation."""
+    from scipy.stats import chi2
+
+    from body_schema.noise import InnovationCheck
+
+    bound = float(chi2.ppf(0.9999, 6))
+    assert InnovationCheck(40, 5.3, 0, 0.9999, bound).tail_p_value() == 1.0
+    # one exceedance where 0.004 are expected: 1 - exp(-0.004)
+    assert InnovationCheck(40, 5.3, 1, 0.9999, bound).tail_p_value() == pytest.approx(1 - np.exp(-0.004), rel=1e-9)
+    rng = np.random.default_rng(3)
+    medians = np.median(chi2.rvs(6, size=(20000, 40), random_state=rng), axis=1)
+    for m in (6.0, 7.0, 8.0):
+        simulated = np.mean(medians >= m)
+        p = InnovationCheck(40, m, 0, 0.9999, bound).high_median_p_value()
+        assert simulated <= p < 3 * simulated + 1e-3, (m, simulated, p)
+    with pytest.raises(ValueError, match='alpha must be in \\(0, 1\\), got 2'):
+        InnovationCheck(40, 5.3, 0, 0.9999, bound).cautions(alpha=2)

@@ -6,18 +6,27 @@ table differs from the online estimate means the bag and the live graph saw diff
 ``python -m calibration_bringup.run_check DIR`` reads ``DIR/metrics.csv`` and ``DIR/report.md``
 (both written by ``calibration_report``), prints one line per problem and exits 1 if there is
 one, 0 otherwise.
+
+It then reads the innovations of ``DIR/summary.json`` (the truth-free check of the noise law,
+:class:`body_schema.noise.InnovationCheck`) and prints a ``CAUTION`` line per finding against the
+law: exceedances of the change test's bound far beyond the expected count, or a median NIS above a
+right law's. Those make the final covariance (NEES, information limit) optimistic but leave the
+estimate itself usable, so they do not fail the run.
 """
 from __future__ import annotations
 
 import argparse
 import csv
 import re
+import json
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ['CheckSettings', 'check_rows', 'dh_difference', 'check_run', 'main']
+from body_schema.noise import InnovationCheck
+
+__all__ = ['CheckSettings', 'check_rows', 'dh_difference', 'check_run', 'noise_law_cautions', 'main']
 
 #: The report's line with the largest |offline - online| difference of the final DH tables
 #: (``dh_estimator.evaluate.summary_text``).
@@ -38,17 +47,23 @@ class CheckSettings:
     check_agreement : bool
         False for a resumed run's bag: its re-run starts from the resumed estimate without the
         checkpoint's covariance, so it cannot reproduce the online estimate.
+    noise_law_alpha : float
+        Significance of each test of the noise law against the innovations (a right law is
+        cautioned against in about twice this fraction of runs).
     """
 
     max_timeouts: float = 0.2
     max_dh_difference: float = 1e-4
     check_agreement: bool = True
+    noise_law_alpha: float = 1e-3
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.max_timeouts <= 1.0:
             raise ValueError(f'max_timeouts must be a fraction in [0, 1], got {self.max_timeouts}')
         if not self.max_dh_difference >= 0.0:
             raise ValueError(f'max_dh_difference must be >= 0, got {self.max_dh_difference}')
+        if not 0.0 < self.noise_law_alpha < 1.0:
+            raise ValueError(f'noise_law_alpha must be in (0, 1), got {self.noise_law_alpha}')
 
 
 def check_rows(rows: Sequence[dict[str, str]], dh_diff: float | None,
@@ -117,6 +132,35 @@ def check_run(directory: str | Path, settings: CheckSettings = CheckSettings()) 
     return check_rows(rows, dh_difference((directory / 'report.md').read_text()), settings)
 
 
+def noise_law_cautions(summary: dict, alpha: float = CheckSettings.noise_law_alpha) -> list[str]:
+    """The findings against the noise law in a run's ``summary.json`` record (its ``innovations``).
+
+    Parameters
+    ----------
+    summary : dict
+        The record ``calibration_report`` writes; a run without innovations after the warm-up
+        (or a record from before they were kept) has none, and gives no finding.
+    alpha : float
+        Significance of each test (:meth:`InnovationCheck.cautions`).
+
+    Raises
+    ------
+    ValueError
+        If the ``innovations`` entry lacks a field or holds a value of the wrong kind.
+    """
+    inn = summary.get('innovations')
+    if not inn or inn.get('median') is None:
+        return []
+    try:
+        check = InnovationCheck(int(inn['count']), float(inn['median']), int(inn['beyond']),
+                                float(inn['probability']), float(inn['bound']))
+    except KeyError as exc:
+        raise ValueError(f'summary.json: innovations has no field {exc}') from None
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f'summary.json: innovations {inn!r} unreadable: {exc}') from None
+    return check.cautions(alpha)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog='run_check', description=__doc__.split('\n\n')[0])
     ap.add_argument('directory', type=Path, help="the run's output directory")
@@ -135,6 +179,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
     for p in problems:
         print(f'run_calibration: UNHEALTHY RUN: {p}', file=sys.stderr)
+    summary = args.directory / 'summary.json'
+    try:
+        cautions = noise_law_cautions(json.loads(summary.read_text()), settings.noise_law_alpha) \
+            if summary.exists() else []
+    except (OSError, ValueError) as exc:      # json.JSONDecodeError is a ValueError
+        print(f'run_check: {summary}: {exc}', file=sys.stderr)
+        cautions = []
+    for c in cautions:
+        print(f'run_calibration: CAUTION (noise law): {c}', file=sys.stderr)
     if args.resumed:
         print('run_check: resumed run: offline-vs-online agreement not checked (the re-run of this part '
               "starts without the checkpoint's covariance)", file=sys.stderr)

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calibration_bringup.run_check import CheckSettings, check_rows, check_run, dh_difference
+from calibration_bringup.run_check import CheckSettings, check_rows, check_run, dh_difference, noise_law_cautions
 from dh_estimator.evaluate import Evaluation, IterationRow, summary_text
 
 
@@ -98,3 +98,55 @@ def test_the_summary_record_carries_the_innovation_check_seed_study_adds_up() ->
     assert 'beyond the 99.99% bound in 1 of 3' in summary_text(ev)
     ev.innovations = None
     assert summary_record(ev, 't', None)['innovations'] is None
+
+
+def _innovations(nis: list[float] | np.ndarray) -> dict:
+    """A summary.json record's ``innovations`` entry for these NIS (no warm-up)."""
+    from body_schema.noise import innovation_check
+
+    c = innovation_check(nis)
+    return {'innovations': {'count': c.count, 'median': c.median, 'beyond': c.beyond, 'bound': c.bound,
+                            'probability': c.probability}}
+
+
+def test_the_noise_law_is_cautioned_against_when_its_innovations_say_so() -> None:
+    """Innovations of a right law (chi-square 6) seldom raise a caution; a detector with heavier
+    tails than the law (the Panda's: 3 of 39 beyond the 99.99 % bound) or a law that understates
+    the typical error (NIS twice too large) does, each with its own sentence; a cautious law alone
+    does not."""
+    from scipy.stats import chi2
+
+    rng = np.random.default_rng(7)
+    right = [noise_law_cautions(_innovations(chi2.rvs(6, size=40, random_state=rng))) for _ in range(2000)]
+    assert sum(bool(c) for c in right) <= 10                     # about 2 alpha = 0.2 %: 4 of 2000
+    nis = chi2.rvs(6, size=39, random_state=rng) * 0.3            # a bulk the law overstates...
+    nis[[5, 17, 30]] = [60.0, 95.0, 40.0]                         # ...and tails it understates
+    (tails,) = noise_law_cautions(_innovations(nis))
+    assert '3 of 39 innovations beyond the 99.99% bound' in tails and 'too sure' in tails
+    (bulk,) = noise_law_cautions(_innovations(2.0 * chi2.rvs(6, size=40, random_state=rng)))
+    assert 'understates the typical error' in bulk
+    assert noise_law_cautions(_innovations(0.3 * chi2.rvs(6, size=40, random_state=rng))) == []   # cautious
+    assert noise_law_cautions({'innovations': None}) == [] and noise_law_cautions({}) == []
+    with pytest.raises(ValueError, match="'beyond'"):
+        noise_law_cautions({'innovations': {'count': 3, 'median': 5.0, 'bound': 27.9, 'probability': 0.9999}})
+    with pytest.raises(ValueError, match='noise_law_alpha'):
+        CheckSettings(noise_law_alpha=0.0)
+
+
+def test_a_caution_on_the_noise_law_is_printed_but_does_not_fail_the_run(tmp_path: Path) -> None:
+    import json
+
+    rows = _rows(['accepted'] * 5)
+    with (tmp_path / 'metrics.csv').open('w', newline='') as f:
+        w = csv.DictWriter(f, fieldnames=[f.name for f in fields(IterationRow)])
+        w.writeheader()
+        w.writerows(_csv(rows))
+    (tmp_path / 'report.md').write_text(_report(rows, 0.0))
+    (tmp_path / 'summary.json').write_text(json.dumps(_innovations([3.0] * 30 + [80.0] * 3)))
+    cmd = [sys.executable, '-m', 'calibration_bringup.run_check', str(tmp_path)]
+    out = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert 'CAUTION (noise law): 3 of 33 innovations beyond' in out.stderr and 'UNHEALTHY' not in out.stderr
+    (tmp_path / 'summary.json').write_text('{not json')
+    out = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0 and 'summary.json' in out.stderr, out.stderr   # named, not fatal

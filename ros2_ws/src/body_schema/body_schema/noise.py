@@ -368,7 +368,8 @@ class InnovationCheck:
         Two findings make the covariance of the estimate optimistic: exceedances of the bound far
         beyond the expected count (the law is too sure of some observations: a heavy-tailed
         detector; the change test then raises false alarms) and a median NIS above the
-        chi-square median (the law understates the typical error). A median below it alone (a
+        chi-square median (the law understates the typical error, or the estimate's covariance
+        ``P`` is too small: the EKF's linearisation). A median below it alone (a
         cautious law) is not reported: it costs precision, not trust.
 
         Parameters
@@ -395,8 +396,10 @@ class InnovationCheck:
                        'NEES and information limit are optimistic and the change test can raise false alarms')
         if 'median' in found:
             out.append(f'median NIS {self.median:.1f} against 5.3 for a right law (p = '
-                       f'{self.high_median_p_value():.1e}): the noise law understates the typical error, so the '
-                       'final covariance, NEES and information limit are optimistic')
+                       f'{self.high_median_p_value():.1e}): the typical innovation is larger than the noise law '
+                       'and the estimate\'s covariance predict (a law that understates the typical error, or an '
+                       'estimator too sure of itself), so the final covariance, NEES and information limit are '
+                       'optimistic')
         return out
 
 

@@ -17,8 +17,8 @@ from __future__ import annotations
 
 import argparse
 import csv
-import re
 import json
+import re
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass

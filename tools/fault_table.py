@@ -96,16 +96,11 @@ def _params(iterations: int = ITERATIONS) -> dict[str, dict[str, Any]]:
 def _accepted_in_bag(bag: Path) -> tuple[int, str]:
     """Accepted estimator verdicts the bag holds, read with the project's reader, and the reader's
     complaint if it stopped early."""
-    from calibration_interfaces import mcap_reader
-    from calibration_interfaces.outcome import StatusFormatError, decode_status
+    from calibration_interfaces.outcome import recorded_statuses
 
     n, err = 0, ''
     try:
-        for _topic, _t, msg in mcap_reader.read_messages(bag, ['/body_schema/update_status']):
-            try:
-                status = decode_status({v.key: v.value for v in msg.values})
-            except StatusFormatError:
-                continue
+        for status in recorded_statuses(bag, skip_malformed=True):
             n += status.outcome.value == 'accepted'
     except Exception as exc:  # noqa: BLE001 (what the reader does on a damaged bag is measured)
         err = f'{type(exc).__name__}: {exc}'

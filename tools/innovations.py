@@ -32,15 +32,9 @@ UPDATES = ('accepted', 'outlier', 'rejected')
 
 def recorded_nis(bag: str | Path) -> list[float]:
     """The NIS of every update recorded in ``bag``, in order (duplicates and failures left out)."""
-    from calibration_interfaces import mcap_reader
-    from calibration_interfaces.outcome import decode_status
+    from calibration_interfaces.outcome import recorded_statuses
 
-    out = []
-    for _topic, _t, msg in mcap_reader.read_messages(bag, ['/body_schema/update_status']):
-        status = decode_status({v.key: v.value for v in msg.values})
-        if status.outcome.value in UPDATES:
-            out.append(status.mahalanobis ** 2)
-    return out
+    return [s.mahalanobis ** 2 for s in recorded_statuses(bag) if s.outcome.value in UPDATES]
 
 
 def runs_of(paths: Sequence[Path]) -> list[Path]:

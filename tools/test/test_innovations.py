@@ -8,18 +8,20 @@ from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from rclpy.serialization import serialize_message
 
 from calibration_bringup.mcap_writer import McapBagWriter
-from calibration_interfaces.outcome import Outcome, encode_status
+from calibration_interfaces.outcome import Outcome, StatusFormatError, encode_status, recorded_statuses
 from tools.innovations import main, recorded_nis, runs_of
 
 COUNTERS = {'updates': 0, 'rejected': 0, 'duplicates': 0, 'outliers': 0, 'changes': 0}
 
 
-def _bag(path: Path, verdicts: list[tuple[Outcome, float]]) -> Path:
+def _bag(path: Path, verdicts: list[tuple[Outcome, float]], malformed: int = -1) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     with McapBagWriter(path) as w:
         w.add_channel('/body_schema/update_status', 'diagnostic_msgs/msg/DiagnosticStatus')
         for i, (outcome, m) in enumerate(verdicts):
             kv = encode_status(outcome, float(i), [0.0] * 7, m, 0.01, COUNTERS)
+            if i == malformed:
+                kv['mahalanobis'] = 'not a number'
             msg = DiagnosticStatus(name='dh_estimator', values=[KeyValue(key=k, value=v) for k, v in kv.items()])
             w.write('/body_schema/update_status', serialize_message(msg), (i + 1) * 10**9)
     return path
@@ -43,3 +45,14 @@ def test_updates_are_read_back_and_summed_over_a_study(tmp_path: Path, capsys) -
 def test_a_path_that_is_no_run_is_named(tmp_path: Path, capsys) -> None:
     assert main([str(tmp_path)]) == 2
     assert f'{tmp_path}: neither a run' in capsys.readouterr().err
+
+
+def test_a_malformed_verdict_is_named_or_skipped_on_request(tmp_path: Path, capsys) -> None:
+    """tools.innovations refuses a bag with a status it cannot decode (the figures would be of
+    another run); the fault table, counting what survived a fault, skips it."""
+    bag = _bag(tmp_path / 'run' / 'calibration.mcap', [(Outcome.ACCEPTED, 2.0)] * 3, malformed=1)
+    assert [s.mahalanobis for s in recorded_statuses(bag, skip_malformed=True)] == [2.0, 2.0]
+    with pytest.raises(StatusFormatError, match='mahalanobis'):
+        recorded_nis(bag)
+    assert main([str(tmp_path / 'run')]) == 2
+    assert 'mahalanobis' in capsys.readouterr().err

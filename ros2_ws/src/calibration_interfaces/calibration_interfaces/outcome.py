@@ -24,7 +24,8 @@ input it cannot judge) and publishes that verdict per frame on ``/diagnostics``
 from __future__ import annotations
 
 import enum
-from collections.abc import Callable, Mapping
+import os
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import TypeVar
 
@@ -32,6 +33,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 __all__ = ['Outcome', 'StatusKey', 'UpdateStatus', 'encode_status', 'decode_status', 'StatusFormatError',
+           'recorded_statuses',
            'FrameStatus', 'FrameKey', 'FrameReport', 'DETECTOR_DIAGNOSTIC', 'encode_frame', 'decode_frame',
            'CONTACT_DIAGNOSTIC', 'ContactKey', 'ContactStatus', 'encode_contacts', 'decode_contacts']
 
@@ -143,6 +145,32 @@ def decode_status(values: Mapping[str, str]) -> UpdateStatus:
         update_seconds=float(values[StatusKey.UPDATE_S]),
         counters={**{k.value: int(values[k]) for k in _COUNTERS},
                   **{k.value: int(values.get(k, 0)) for k in _NEWER_COUNTERS}}))
+
+
+def recorded_statuses(bag: str | os.PathLike[str], skip_malformed: bool = False) -> Iterator[UpdateStatus]:
+    """The estimator's verdicts recorded on ``/body_schema/update_status`` in a bag, in order.
+
+    Parameters
+    ----------
+    bag : path
+        An MCAP file (read with :func:`calibration_interfaces.mcap_reader.read_messages`, so a
+        bag cut by a crash is read up to its last complete record).
+    skip_malformed : bool
+        Leave out a status that does not decode instead of raising.
+
+    Raises
+    ------
+    StatusFormatError
+        If a status does not decode and ``skip_malformed`` is false.
+    """
+    from . import mcap_reader          # the bag reader only for those who read bags
+
+    for _topic, _t, msg in mcap_reader.read_messages(bag, ['/body_schema/update_status']):
+        try:
+            yield decode_status({v.key: v.value for v in msg.values})
+        except StatusFormatError:
+            if not skip_malformed:
+                raise
 
 
 class FrameStatus(enum.StrEnum):

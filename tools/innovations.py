@@ -6,8 +6,8 @@ This command reads them from each run's ``calibration.mcap`` (seconds per bag, w
 re-runs the estimator for the same figures) and prints, per run and over all, the median NIS
 after the warm-up, how many lie beyond the change test's bound
 (:func:`body_schema.noise.innovation_check`) and which of the launcher's health-check tests of
-the law they fail (``tails``, ``median``: :meth:`body_schema.noise.InnovationCheck.findings`). A bag whose offline re-run equals the online estimate
-gives the figures the run's report states.
+the law they fail (``tails``, ``median``: :meth:`body_schema.noise.InnovationCheck.findings`).
+A bag whose offline re-run equals the online estimate gives the figures the run's report states.
 
 Usage (from the repository root)::
 

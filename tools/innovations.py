@@ -60,7 +60,7 @@ def runs_of(paths: Sequence[Path]) -> list[Path]:
 
 def main(argv: Sequence[str] | None = None) -> int:
     from body_schema.map_estimator import MapSettings
-    from body_schema.noise import innovation_check
+    from body_schema.noise import CAUTION_ALPHA, innovation_check
 
     ap = argparse.ArgumentParser(prog='python -m tools.innovations', description=__doc__.split('\n\n')[0])
     ap.add_argument('paths', type=Path, nargs='+', help='run directories or seed_study directories')
@@ -77,12 +77,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f'innovations: {exc}', file=sys.stderr)
         return 2
     print(f'| run | updates | after the warm-up | median NIS | beyond the {args.probability:.2%} bound '
-          '| against the law (p < 0.001) |')
+          f'| against the law (p < {CAUTION_ALPHA:g}) |')
     print('|---|---|---|---|---|---|')
+    found = {r: c.findings() for r, c in checks.items() if c is not None}
     for r, c in checks.items():
         print(f'| {r} | {len(nis[r])} | ' + ('0 | n/a | n/a | n/a |' if c is None else
                                              f'{c.count} | {c.median:.1f} | {c.beyond} | '
-                                             f'{", ".join(c.findings()) or "none"} |'))
+                                             f'{", ".join(found[r]) or "none"} |'))
     done = [c for c in checks.values() if c is not None]
     if done:
         count, beyond = sum(c.count for c in done), sum(c.beyond for c in done)
@@ -91,7 +92,7 @@ def main(argv: Sequence[str] | None = None) -> int:
               f'(5.3 if the noise law is right); beyond the bound in {beyond} of {count} '
               f'({beyond / count:.1%}; a right law: {1 - args.probability:.2%}), in {sum(c.beyond > 0 for c in done)} '
               f'of {len(done)} runs; the health check cautions against the law in '
-              f'{sum(bool(c.findings()) for c in done)} of {len(done)} runs')
+              f'{sum(bool(f) for f in found.values())} of {len(done)} runs')
     return 0
 
 

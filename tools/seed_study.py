@@ -87,12 +87,13 @@ def _innovation_lines(rec: Sequence[dict[str, Any]]) -> list[str]:
     """The noise law's truth-free check over the runs (``innovations`` of each ``summary.json``)."""
     from calibration_bringup.run_check import noise_law_cautions
 
-    inn = [r['innovations'] for r in rec if r.get('innovations')]
-    if not inn:
+    runs = [r for r in rec if r.get('innovations')]
+    if not runs:
         return []
+    inn = [r['innovations'] for r in runs]
     beyond, count = sum(i['beyond'] for i in inn), sum(i['count'] for i in inn)
     p = inn[0]['probability']
-    cautioned = sum(bool(noise_law_cautions(r)) for r in rec if r.get('innovations'))
+    cautioned = sum(bool(noise_law_cautions(r)) for r in runs)
     return [f"- innovations after the warm-up: median NIS per run {_spread([i['median'] for i in inn], '.1f')} "
             f'(5.3 if the noise law is right, 6 dof); beyond the {p:.2%} bound in '
             f'{beyond} of {count} ({count * (1 - p):.2f} expected), in {sum(i["beyond"] > 0 for i in inn)} of '

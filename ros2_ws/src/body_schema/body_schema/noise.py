@@ -31,10 +31,14 @@ from numpy.typing import ArrayLike, NDArray
 from .robot import ArmModel, MarkerPlacement
 
 __all__ = ['view_geometry', 'NoiseModel', 'PoseDependentNoise', 'ConstantNoise', 'NOISE_MODELS', 'noise_model',
-           'sample_pose', 'line_of_sight_covariance', 'InnovationCheck', 'innovation_check']
+           'sample_pose', 'line_of_sight_covariance', 'InnovationCheck', 'innovation_check', 'CAUTION_ALPHA']
 
 #: phi beyond which a marker is seen edge-on or from behind and cannot be detected [deg].
 MAX_VIEW_ANGLE_DEG = 90.0
+
+#: Significance of each test of a noise law against a run's innovations (:meth:`InnovationCheck.findings`):
+#: a right law fails one in about twice this fraction of runs.
+CAUTION_ALPHA = 1e-3
 
 
 def view_geometry(camera_pose: ArrayLike, marker_pose: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -348,7 +352,7 @@ class InnovationCheck:
 
         return float(binom.sf(-(-self.count // 2) - 1, self.count, chi2.sf(self.median, 6)))
 
-    def findings(self, alpha: float = 1e-3) -> list[str]:
+    def findings(self, alpha: float = CAUTION_ALPHA) -> list[str]:
         """The tests the law fails at significance ``alpha``: ``'tails'`` (too many exceedances,
         :meth:`tail_p_value`) and ``'median'`` (too high a median, :meth:`high_median_p_value`).
 
@@ -362,7 +366,7 @@ class InnovationCheck:
         return [name for name, p in (('tails', self.tail_p_value()), ('median', self.high_median_p_value()))
                 if p < alpha]
 
-    def cautions(self, alpha: float = 1e-3) -> list[str]:
+    def cautions(self, alpha: float = CAUTION_ALPHA) -> list[str]:
         """What the innovations say against the noise law, at significance ``alpha``.
 
         Two findings make the covariance of the estimate optimistic: exceedances of the bound far

@@ -24,7 +24,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from body_schema.noise import InnovationCheck
+from body_schema.noise import CAUTION_ALPHA, InnovationCheck
 
 __all__ = ['CheckSettings', 'check_rows', 'dh_difference', 'check_run', 'noise_law_cautions', 'main']
 
@@ -55,7 +55,7 @@ class CheckSettings:
     max_timeouts: float = 0.2
     max_dh_difference: float = 1e-4
     check_agreement: bool = True
-    noise_law_alpha: float = 1e-3
+    noise_law_alpha: float = CAUTION_ALPHA
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.max_timeouts <= 1.0:

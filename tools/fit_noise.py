@@ -13,11 +13,16 @@ block to paste into the description's YAML, which the detector and the selector 
 
 Usage (from the repository root)::
 
-    python -m tools.fit_noise --robot ur5e --n 300 --seed 1 [--pixel-noise 0.0] [--out FILE]
+    python -m tools.fit_noise --robot ur5e --n 300 --seed 1 [--pixel-noise 0.0] [--depth] [--loss-scale] [--out FILE]
 
 ``--pixel-noise`` should be what the simulator node adds (its ``pixel_noise_std``, 0 by default);
 on a real camera fit to the simulator with the noise your images show, or keep the defaults and
 check the NEES the estimator reports.
+
+The law is the errors' variance; heavy-tailed errors are typically much smaller than it says.
+The report gives their typical size in the law's standard deviations (:func:`typical_spread`),
+and ``--loss-scale`` adds the MAP estimator's ``loss_scale`` for it to the block
+(:func:`loss_scale_for`), so that the robust loss departs from the square at 3 typical errors.
 """
 from __future__ import annotations
 
@@ -36,7 +41,8 @@ from body_schema.sampling import uniform_configs
 from marker_detector.detection import DetectorConfig, HandPoseEstimator
 from tools.detector_accuracy import FLIP_DEG, FrameScores, NoiseFit, collect, evaluate, fit_noise, position_chi2, summarize
 
-__all__ = ['views_of', 'law_yaml', 'calibration_of', 'tails', 'shape', 'main']
+__all__ = ['views_of', 'law_yaml', 'calibration_of', 'tails', 'typical_spread', 'loss_scale_for', 'shape',
+           'main']
 
 CHI2_3_95 = 7.814727903251178                   # chi-square(3) 95 % quantile
 
@@ -52,11 +58,13 @@ def views_of(model: ArmModel) -> list[tuple[str, tuple[int, int]]]:
     return [(name, size) for name in names]
 
 
-def law_yaml(law: PoseDependentNoise, comment: str, covariance: str = '') -> str:
-    """The ``noise_model:`` block of a robot description for ``law`` (3 significant digits)."""
+def law_yaml(law: PoseDependentNoise, comment: str, covariance: str = '', loss_scale: float = 0.0) -> str:
+    """The ``noise_model:`` block of a robot description for ``law`` (3 significant digits), with the
+    estimator's ``covariance`` and ``loss_scale`` where given."""
     body = ', '.join([f'{k}: {getattr(law, k):.3g}' for k in NOISE_LAW_KEYS
                       if k != 'depth_ratio' or law.depth_ratio != 1.0]
-                     + ([f'covariance: {covariance}'] if covariance else []))
+                     + ([f'covariance: {covariance}'] if covariance else [])
+                     + ([f'loss_scale: {loss_scale:.2g}'] if loss_scale > 0 else []))
     return f'# {comment}\nnoise_model: {{{body}}}\n'
 
 
@@ -109,6 +117,38 @@ def tails(model: NoiseModel, out: FrameScores) -> dict[str, float]:
 #: estimator for the leverage-corrected spread (``covariance: sandwich_hc3``).
 HEAVY_TAILS_DOF = 5.0
 
+#: How far the errors' typical size may be from the law's before the printed block sets the
+#: estimator's ``loss_scale`` (a ratio of standard deviations, either way).
+SPREAD_TOLERANCE = 0.1
+
+
+def typical_spread(model: NoiseModel, out: FrameScores) -> float:
+    """The errors' typical size in ``model``'s standard deviations: ``sqrt(median d^2 / median
+    chi2(6))``, ``d^2`` the squared error whitened by the law (flips excluded); 1 where the law
+    is right. A law fitted to the errors' variance (maximum likelihood of a Gaussian) takes the
+    heavy tails' size: the typical error is then a fraction of it.
+    """
+    from scipy.stats import chi2
+
+    zp, zo = _normalised(model, out)
+    return float(np.sqrt(np.median(zp + zo) / chi2.median(6)))
+
+
+def loss_scale_for(spread: float) -> float:
+    """The estimator's ``loss_scale`` for errors of typical size ``spread`` (law standard
+    deviations): its default number of typical errors (``MapSettings.loss_scale``, 3), in the
+    law's units, so that the robust loss departs from the square at the same place relative to
+    the errors as with a right law; 0 (the estimator's default) within :data:`SPREAD_TOLERANCE`
+    of 1.
+    """
+    from body_schema.map_estimator import MapSettings
+
+    if not np.isfinite(spread) or spread <= 0:
+        raise ValueError(f'spread must be finite and > 0, got {spread}')
+    if abs(spread - 1.0) <= SPREAD_TOLERANCE:
+        return 0.0
+    return float(np.clip(MapSettings.loss_scale * spread, 0.1, 100.0))
+
 
 def shape(model: NoiseModel, out: FrameScores, cameras: np.ndarray) -> dict[str, object]:
     """How the errors spread along the camera's axes (x right, y down, z the optical axis), over ``model``.
@@ -145,8 +185,10 @@ def _row(name: str, model: NoiseModel, out: FrameScores) -> str:
             f'{c["cover_rot"]:.2f} |')
 
 
-def run(robot: str, n: int, seed: int, pixel_noise: float, depth: bool = False) -> tuple[str, NoiseFit]:
-    """Render, detect, fit; the Markdown report (with the YAML block) and the fit."""
+def run(robot: str, n: int, seed: int, pixel_noise: float, depth: bool = False,
+        with_loss_scale: bool = False) -> tuple[str, NoiseFit]:
+    """Render, detect, fit; the Markdown report (with the YAML block) and the fit. With
+    ``with_loss_scale`` the block also sets the estimator's ``loss_scale`` (:func:`loss_scale_for`)."""
     from icub_sim_bridge.world import SimWorld
 
     t0 = time.perf_counter()
@@ -161,6 +203,17 @@ def run(robot: str, n: int, seed: int, pixel_noise: float, depth: bool = False) 
     tl = tails(fit.pdn, out)
     sh = shape(fit.pdn, out, np.array([f.root_T_cam[:3, :3] for f in frames]))
     covariance = 'sandwich_hc3' if tl['dof'] < HEAVY_TAILS_DOF else ''
+    spread = typical_spread(fit.pdn, out)
+    loss_scale = loss_scale_for(spread)
+    if loss_scale and with_loss_scale:
+        scale_text = ('the block sets the robust loss to depart from the square at {:g} typical errors, '
+                      'loss_scale {:.2g} of the law\'s.'.format(loss_scale / spread, loss_scale))
+    elif loss_scale:
+        scale_text = ('`--loss-scale` adds loss_scale {:.2g} to the block (the robust loss then departs from the '
+                      'square at {:g} typical errors rather than at {:g} of the law\'s standard '
+                      'deviations).'.format(loss_scale, loss_scale / spread, loss_scale / spread))
+    else:
+        scale_text = 'the estimator\'s default loss scale.'
     s = summarize(out, frames)
     r_ok = out.r[out.success & np.isfinite(out.r)]
     lines = [f'## Noise law of `{model.name}` ({", ".join(f"{e} {w}x{h}" for e, (w, h) in views)}, '
@@ -190,6 +243,8 @@ def run(robot: str, n: int, seed: int, pixel_noise: float, depth: bool = False) 
              ('Tails this heavy (under {:g} degrees of freedom): the block asks the estimator for the '
               'leverage-corrected spread (covariance: sandwich_hc3).'.format(HEAVY_TAILS_DOF) if covariance else
               'Tails near Gaussian: the estimator\'s default covariance.'), '',
+             'Typical error: {:.2f} of the law\'s standard deviation (the median whitened error against '
+             'chi-square(6)\'s); {}'.format(spread, scale_text), '',
              (f'Line of sight: the position law is fitted across it and `depth_ratio` along it: the error '
               f'along the line of sight is {fit.pdn.depth_ratio:.3g} times that across it.' if depth else
               'An isotropic position law (`--depth` fits one across the line of sight and its `depth_ratio` '
@@ -197,7 +252,9 @@ def run(robot: str, n: int, seed: int, pixel_noise: float, depth: bool = False) 
              f'Fitted on {fit.n} poses; {time.perf_counter() - t0:.0f} s. Paste into the description:', '',
              '```yaml',
              law_yaml(fit.pdn, f'Fitted by: python -m tools.fit_noise --robot {robot} --n {n} --seed {seed} '
-                               f'--pixel-noise {pixel_noise:g}' + (' --depth' if depth else ''), covariance).rstrip(),
+                               f'--pixel-noise {pixel_noise:g}' + (' --depth' if depth else '')
+                               + (' --loss-scale' if with_loss_scale else ''), covariance,
+                      loss_scale if with_loss_scale else 0.0).rstrip(),
              f'# CN baseline fitted on the same poses: cn_sigma_pos {fit.cn.sigma_pos:.3g} m, '
              f'cn_sigma_rot_deg {np.degrees(fit.cn.sigma_rot):.3g}',
              '```', '']
@@ -213,11 +270,14 @@ def main(argv: Sequence[str] | None = None) -> int:
                     help="additive pixel noise [grey levels]; the simulator node's pixel_noise_std")
     ap.add_argument('--depth', action='store_true',
                     help='fit the position law across the line of sight and its depth_ratio along it')
+    ap.add_argument('--loss-scale', action='store_true',
+                    help="also set the estimator's loss_scale in the block: 3 of the errors' typical size, in the "
+                         "law's standard deviations, where that differs from 1 by more than 10%%")
     ap.add_argument('--out', type=Path, help='also write the report here')
     args = ap.parse_args(list(argv) if argv is not None else None)
     if args.n < 20:
         ap.error(f'--n must be at least 20 for a fit of six coefficients, got {args.n}')
-    report, _ = run(args.robot, args.n, args.seed, args.pixel_noise, args.depth)
+    report, _ = run(args.robot, args.n, args.seed, args.pixel_noise, args.depth, args.loss_scale)
     print(report)
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)

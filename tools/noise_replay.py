@@ -4,8 +4,8 @@ The law an observation is weighted with decides how much the estimate trusts it.
 takes every run of a ``tools.seed_study`` directory, re-runs its bag through the estimator
 twice with the run's own settings (``run.env`` and the packaged ``estimator.yaml``): once with
 the covariances the detector recorded, once with each observation's covariance replaced by the
-given law's at its hand pose (``evaluate --noise-law``), and prints both, seed by seed, with the
-paired comparison. The selector chose the poses with the recorded law, so this measures the
+given law's at its hand pose (``evaluate --noise-law``; the block's ``covariance`` and ``loss_scale``,
+where set, are the estimator's), and prints both, seed by seed, with the paired comparison. The selector chose the poses with the recorded law, so this measures the
 estimator's weighting alone, not what a selector using the new law would pick.
 
 Usage (from the repository root)::
@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-from dataclasses import replace
 from pathlib import Path
 from typing import Sequence
 
@@ -49,10 +48,12 @@ def run_settings(run: Path):  # -> dh_estimator.evaluate.EvaluationSettings
     return EvaluationSettings.from_parameters(values)
 
 
-def replay(study: Path, law: tuple[tuple[str, float], ...]) -> list[dict[str, float]]:
+def replay(study: Path, law: Path) -> list[dict[str, float]]:
     """One row per run of ``study`` (``seed_<S>/calibration.mcap``): final errors, information
-    limit and NEES with the recorded covariances and with ``law``'s."""
-    from dh_estimator.evaluate import evaluate_bag
+    limit and NEES with the recorded covariances and with the law of the ``noise_model:`` block
+    in the file ``law`` (and its estimator keys, ``covariance`` and ``loss_scale``, where set:
+    :func:`dh_estimator.evaluate.with_noise_law`)."""
+    from dh_estimator.evaluate import evaluate_bag, with_noise_law
 
     rows = []
     runs = sorted((p for p in study.glob('seed_*') if (p / 'calibration.mcap').is_file()),
@@ -62,7 +63,7 @@ def replay(study: Path, law: tuple[tuple[str, float], ...]) -> list[dict[str, fl
     for run in runs:
         settings = run_settings(run)
         row: dict[str, float] = {'seed': int(run.name.split('_')[1])}
-        for name, s in (('recorded', settings), ('law', replace(settings, noise_law=law))):
+        for name, s in (('recorded', settings), ('law', with_noise_law(settings, law))):
             ev = evaluate_bag(run / 'calibration.mcap', s)
             last = ev.rows[-1]
             band = ev.nees_band or (np.nan, np.nan)
@@ -104,7 +105,7 @@ def report(rows: Sequence[dict[str, float]], title: str) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from dh_estimator.evaluate import read_noise_law
+    from dh_estimator.evaluate import read_noise_law    # checks the file before any run
 
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     ap.add_argument('study', type=Path, help='a tools.seed_study output directory')
@@ -112,8 +113,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument('--output', type=Path, help='also write the report here')
     args = ap.parse_args(list(argv) if argv is not None else None)
     try:
-        law = read_noise_law(args.noise_law)
-        rows = replay(args.study, law)
+        read_noise_law(args.noise_law)
+        rows = replay(args.study, args.noise_law)
     except (FileNotFoundError, ValueError) as exc:
         print(f'noise_replay: {exc}', file=sys.stderr)
         return 2

@@ -92,3 +92,30 @@ def test_the_depth_fit_recovers_a_line_of_sight_law_and_the_isotropic_fit_cannot
     block = yaml.safe_load(law_yaml(deep.pdn, 'fitted'))['noise_model']
     assert block['depth_ratio'] == pytest.approx(6.0, rel=0.05)
     assert 'depth_ratio' not in yaml.safe_load(law_yaml(flat.pdn, 'fitted'))['noise_model']
+
+
+def test_the_typical_spread_sets_the_loss_scale_of_a_heavy_tailed_law() -> None:
+    from tools.detector_accuracy import fit_noise
+    from tools.fit_noise import loss_scale_for, typical_spread
+
+    law = PoseDependentNoise(3e-7, 1e-8, 1.3e-6, 2e-8, 1e-8, 3e-7)
+    right = _draw(law, 4000, 0)
+    assert typical_spread(law, right) == pytest.approx(1.0, abs=0.05)
+    assert loss_scale_for(typical_spread(law, right)) == 0.0                  # the estimator's default
+    # 9 in 10 errors from the law, 1 in 10 ten times wider: a law fitted to their variance is
+    # sqrt(0.9 + 10) = 3.3 times the typical error.
+    heavy = _draw(law, 4000, 1)
+    wide = np.where(np.random.default_rng(2).random(heavy.r.size) < 0.1, 10.0, 1.0)
+    heavy = dataclasses.replace(heavy, pos_err=heavy.pos_err * wide, rot_err=heavy.rot_err * wide,
+                                pos_vec=heavy.pos_vec * wide[:, None])
+    fitted = fit_noise(heavy).pdn
+    spread = typical_spread(fitted, heavy)
+    assert 0.2 < spread < 0.45
+    assert loss_scale_for(spread) == pytest.approx(3.0 * spread)
+    block = yaml.safe_load(law_yaml(fitted, 'fitted', 'sandwich_hc3', loss_scale_for(spread)))
+    data = yaml.safe_load(robot_path('ur5e').read_text())
+    data.update(block)
+    assert robot_from_dict(data).noise_loss_scale == pytest.approx(3.0 * spread, rel=0.01)
+    assert 'loss_scale' not in yaml.safe_load(law_yaml(fitted, 'fitted'))['noise_model']
+    with pytest.raises(ValueError, match='spread must be finite and > 0, got nan'):
+        loss_scale_for(float('nan'))

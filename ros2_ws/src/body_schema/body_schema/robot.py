@@ -247,6 +247,11 @@ class ArmModel:
         :data:`body_schema.map_estimator.COVARIANCES`), where the errors need another than the
         estimator's default (heavy tails and an active selector: ``sandwich_hc3``); empty: the
         estimator's default.
+    noise_loss_scale : float
+        Where the MAP estimator's robust loss should depart from the square, in this law's standard
+        deviations (``noise_model: {loss_scale: ...}``), for errors whose typical size is smaller
+        than the law, fitted to their variance, says (heavy tails: ``tools.fit_noise`` prints it);
+        0: the estimator's default.
     tool : ndarray, shape (4, 4)
         The hand (the frame after the last DH link, which every estimate and Jacobian ends at) to
         the flange: the URDF's ``tip_link`` or a modified table's flange row; identity for a
@@ -289,6 +294,7 @@ class ArmModel:
     exports: tuple[str, ...] = ()
     noise_law: dict[str, float] = field(default_factory=dict, compare=False)
     noise_covariance: str = ''
+    noise_loss_scale: float = 0.0
     extra: dict[str, Any] = field(default_factory=dict, compare=False, repr=False)
     tool: NDArray[np.float64] = field(default_factory=lambda: np.eye(4), compare=False, repr=False)
     convention: str = 'standard'
@@ -559,8 +565,8 @@ def robot_from_dict(data: dict[str, Any], source: str = '<dict>', *, propose_box
         # Given on the flange (the URDF's tip link, a modified table's flange row); kept on the hand.
         markers = tuple(dataclasses.replace(m, hand_T_marker=tool @ m.hand_T_marker) for m in markers)
 
-    noise_law, noise_covariance = (parse_noise_law(data['noise_model'], where + 'noise_model')
-                                   if 'noise_model' in data else ({}, ''))
+    noise_law, noise_covariance, noise_loss_scale = (parse_noise_law(data['noise_model'], where + 'noise_model')
+                                                     if 'noise_model' in data else ({}, '', 0.0))
 
     obstacles = _obstacles(data['obstacles'], where + 'obstacles', scale) if 'obstacles' in data else ()
     links = link_names(names)
@@ -604,6 +610,7 @@ def robot_from_dict(data: dict[str, Any], source: str = '<dict>', *, propose_box
         exports=tuple(str(e) for e in exports),
         noise_law=noise_law,
         noise_covariance=noise_covariance,
+        noise_loss_scale=noise_loss_scale,
         extra={k: v for k, v in data.items() if k not in known},
         tool=tool,
         convention=convention,
@@ -714,29 +721,39 @@ def _urdf_arm(data: dict[str, Any], where: str, source: str) -> dict[str, Any]:
 NOISE_LAW_KEYS: tuple[str, ...] = ('a_pos', 'b_pos', 'floor_pos', 'a_rot', 'b_rot', 'floor_rot', 'depth_ratio')
 
 
-def parse_noise_law(n: Any, where: str) -> tuple[dict[str, float], str]:
-    """A ``noise_model:`` block: the law's coefficients and the optional ``covariance`` the
-    estimator should use.
+def parse_noise_law(n: Any, where: str) -> tuple[dict[str, float], str, float]:
+    """A ``noise_model:`` block: the law's coefficients and what the estimator should do with its
+    errors, the optional ``covariance`` and ``loss_scale`` (0 when absent).
 
     Raises
     ------
     RobotDescriptionError
         Naming ``where`` and the key, for a block that is not a mapping, an unknown key, a value
-        that is not a number or out of its range (coefficients >= 0, ``depth_ratio`` > 0), or an
-        unknown ``covariance``.
+        that is not a number or out of its range (coefficients >= 0, ``depth_ratio`` > 0,
+        ``loss_scale`` in [0.1, 100]), or an unknown ``covariance``.
     """
     from .map_estimator import COVARIANCES     # here: map_estimator is a higher layer than robot
 
+    settings = ['covariance', 'loss_scale']
     if not isinstance(n, dict):
-        raise RobotDescriptionError(f'{where}: must be a mapping of {list(NOISE_LAW_KEYS)} (and covariance)')
+        raise RobotDescriptionError(f'{where}: must be a mapping of {list(NOISE_LAW_KEYS)} (and {settings})')
     n = dict(n)
     covariance = n.pop('covariance', '')
     if covariance and covariance not in COVARIANCES:
         raise RobotDescriptionError(f'{where}.covariance: must be one of {list(COVARIANCES)}, got {covariance!r}')
+    loss_scale = 0.0
+    if 'loss_scale' in n:
+        v = n.pop('loss_scale')
+        try:
+            loss_scale = float(v)
+        except (TypeError, ValueError) as exc:
+            raise RobotDescriptionError(f'{where}.loss_scale: must be a number, got {v!r}') from exc
+        if not 0.1 <= loss_scale <= 100.0:          # the estimator's own range for the parameter
+            raise RobotDescriptionError(f'{where}.loss_scale: must be in [0.1, 100] (standard deviations), got {v!r}')
     unknown = sorted(set(n) - set(NOISE_LAW_KEYS))
     if unknown:
         raise RobotDescriptionError(f'{where}: unknown keys {unknown}; expected some of '
-                                    f'{list(NOISE_LAW_KEYS) + ["covariance"]}')
+                                    f'{list(NOISE_LAW_KEYS) + settings}')
     law = {}
     for k, v in n.items():
         try:
@@ -746,7 +763,7 @@ def parse_noise_law(n: Any, where: str) -> tuple[dict[str, float], str]:
         positive = k == 'depth_ratio'                  # a ratio of standard deviations; the rest may be 0
         if not np.isfinite(law[k]) or law[k] < 0 or (positive and law[k] == 0):
             raise RobotDescriptionError(f'{where}.{k}: must be finite and {"> 0" if positive else ">= 0"}, got {v!r}')
-    return law, covariance
+    return law, covariance, loss_scale
 
 
 def _eyes(e: Any, h0: NDArray[np.float64], where: str, scale: float) -> EyeChain:

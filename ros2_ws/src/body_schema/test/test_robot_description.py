@@ -1,5 +1,6 @@
 """The robot-description loader validates fields and names the bad one."""
 import copy
+import re
 
 import numpy as np
 import pytest
@@ -179,6 +180,30 @@ def test_a_description_can_name_the_covariance_its_errors_need(tmp_path, raw):
     assert used(arm) == 'sandwich_hc3'                                       # the description's
     assert used(arm, covariance='gauss_newton') == 'gauss_newton'            # a parameter wins
     assert used(body_schema.load_robot('icub_right_arm')) == 'sandwich'      # none named: the default
+
+
+def test_a_description_can_set_the_loss_scale_its_heavy_tailed_law_needs(tmp_path, raw):
+    from dh_estimator.estimator import EstimatorSettings, OnlineEstimator
+    from body_schema.sampling import initial_covariance
+
+    data = copy.deepcopy(raw)
+    data['noise_model'] = {'a_pos': 3e-7, 'loss_scale': 1.2}
+    arm = body_schema.load_robot(_write(tmp_path, data))
+    assert (arm.noise_law, arm.noise_loss_scale) == ({'a_pos': 3e-7}, 1.2)
+    assert body_schema.load_robot('icub_right_arm').noise_loss_scale == 0.0
+
+    def used(model, **kw):
+        est = OnlineEstimator(model, model.dh, initial_covariance(model.n_joints), EstimatorSettings(**kw))
+        return est.map.settings.loss_scale
+    assert used(arm) == 1.2                                                  # the description's
+    assert used(arm, loss_scale=2.5) == 2.5                                  # a parameter wins
+    assert used(body_schema.load_robot('icub_right_arm')) == 3.0             # none set: the default
+    for bad, words in ((0.05, 'must be in [0.1, 100]'), ('wide', 'must be a number')):
+        data['noise_model'] = {'a_pos': 3e-7, 'loss_scale': bad}
+        with pytest.raises(RobotDescriptionError, match=re.escape(f'noise_model.loss_scale: {words}')):
+            body_schema.load_robot(_write(tmp_path, data))
+    with pytest.raises(ValueError, match="loss_scale must be negative .* or >= 0.1, got 0.05"):
+        EstimatorSettings(loss_scale=0.05)
 
 
 def test_the_body_penalty_is_on_for_a_body_with_eyes_and_off_for_fixed_cameras(tmp_path, raw):

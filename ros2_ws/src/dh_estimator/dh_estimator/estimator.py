@@ -91,8 +91,9 @@ class EstimatorSettings:
                                      (0.0, 0.5), name='same_config_tolerance')
     gate_warmup: int = setting(10, 'EKF: accepted updates before the gate may reject', (0, 100000))
     loss: str = setting(_MAP.loss, 'MAP: robust loss on the whitened residual', choices=LOSSES)
-    loss_scale: float = setting(_MAP.loss_scale, 'MAP: whitened residual where the robust loss departs from '
-                                                 'the square [sigma]', (0.1, 100.0))
+    loss_scale: float = setting(-1.0, 'MAP: whitened residual where the robust loss departs from the square '
+                                      "[sigma]; negative: the robot description's (noise_model.loss_scale, for "
+                                      f'a heavy-tailed law), else {_MAP.loss_scale:g}', (-1.0, 100.0))
     outlier_probability: float = setting(_MAP.outlier_probability, 'MAP: chi-square probability (6 dof) beyond '
                                                                    'which an observation is reported an outlier',
                                          (0.5, 0.999999))
@@ -140,9 +141,12 @@ class EstimatorSettings:
         return (extrinsics_mod.parse_std(self.camera_prior, 'camera_prior'),
                 extrinsics_mod.parse_std(self.marker_prior, 'marker_prior'))
 
-    def map_settings(self, covariance: str = '') -> MapSettings:
-        """The MAP estimator's settings (validated there); ``covariance`` is used where :attr:`covariance` is empty."""
-        return MapSettings(loss=self.loss, loss_scale=self.loss_scale,
+    def map_settings(self, covariance: str = '', loss_scale: float = 0.0) -> MapSettings:
+        """The MAP estimator's settings (validated there); ``covariance`` (the description's) is used
+        where :attr:`covariance` is empty, ``loss_scale`` (the description's, if > 0) where
+        :attr:`loss_scale` is negative."""
+        scale = self.loss_scale if self.loss_scale >= 0 else (loss_scale if loss_scale > 0 else _MAP.loss_scale)
+        return MapSettings(loss=self.loss, loss_scale=scale,
                            outlier_probability=self.outlier_probability, max_nfev=self.max_nfev,
                            window=self.window, q_length=self.q_length, q_angle=self.q_angle,
                            change_probability=self.change_probability, change_window=self.change_window,
@@ -165,6 +169,8 @@ class EstimatorSettings:
             raise ValueError(f'gate_warmup must be >= 0, got {self.gate_warmup}')
         if self.iterations < 1:
             raise ValueError(f'iterations must be >= 1, got {self.iterations}')
+        if 0.0 <= self.loss_scale < 0.1:
+            raise ValueError(f'loss_scale must be negative (the description\'s) or >= 0.1, got {self.loss_scale}')
         if any(p is not None for p in self.extrinsic_priors) and self.estimator != 'map':
             raise ValueError(f'camera_prior / marker_prior need estimator map, got {self.estimator!r}')
 
@@ -217,7 +223,8 @@ class OnlineEstimator:
             # axes hide is not, on a real arm: held at the guess with the guess's own uncertainty.
             spread = np.sqrt(np.einsum('ik,ij,jk->k', parallel, P0, parallel)) if settings.parallel_std < 0 \
                 else np.full(parallel.shape[1], max(settings.parallel_std, FIXED_STD))
-            self.map = MapEstimator(model.base, x0, P0, settings.map_settings(model.noise_covariance),
+            self.map = MapEstimator(model.base, x0, P0,
+                                    settings.map_settings(model.noise_covariance, model.noise_loss_scale),
                                     limits=model.limits, fixed_directions=np.hstack([exact, parallel]),
                                     fixed_std=np.concatenate([np.full(exact.shape[1], FIXED_STD), spread]),
                                     extrinsics=self.extrinsics)

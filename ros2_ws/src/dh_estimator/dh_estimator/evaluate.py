@@ -476,23 +476,46 @@ def _six(v: Sequence[float]) -> str:
 
 
 def read_noise_law(path: str | Path) -> tuple[tuple[str, float], ...]:
-    """The coefficients of the ``noise_model:`` block in the YAML file ``path`` (``covariance`` aside).
+    """The coefficients of the ``noise_model:`` block in the YAML file ``path`` (``covariance`` and
+    ``loss_scale`` aside: :func:`with_noise_law` applies them too).
 
     Raises
     ------
     ValueError
         Naming the file, if it has no ``noise_model`` mapping or a key or value the law refuses.
     """
+    return _read_noise_block(path)[0]
+
+
+def _read_noise_block(path: str | Path) -> tuple[tuple[tuple[str, float], ...], str, float]:
     data = yaml.safe_load(Path(path).read_text())
     block = data.get('noise_model') if isinstance(data, dict) else None
     if not isinstance(block, dict):
         raise ValueError(f"{path}: no 'noise_model:' mapping")
-    law, _ = parse_noise_law(block, f'{path}: noise_model')     # a description's parser: same keys, same checks
+    law, covariance, loss_scale = parse_noise_law(block, f'{path}: noise_model')   # a description's parser
     try:
         PoseDependentNoise(**law)                                 # and the law's own (a singular covariance)
     except ValueError as exc:
         raise ValueError(f'{path}: noise_model: {exc}') from exc
-    return tuple(law.items())
+    return tuple(law.items()), covariance, loss_scale
+
+
+def with_noise_law(settings: EvaluationSettings, path: str | Path) -> EvaluationSettings:
+    """``settings`` re-run as if the ``noise_model:`` block in ``path`` were the description's: its
+    law's covariance replaces each recorded one, and its ``covariance`` and ``loss_scale`` keys,
+    where the block sets them and ``settings`` leave them to the description, replace the
+    description's.
+
+    Raises
+    ------
+    ValueError
+        As :func:`read_noise_law`.
+    """
+    law, covariance, loss_scale = _read_noise_block(path)
+    est = settings.estimator
+    est = replace(est, covariance=est.covariance or covariance,
+                  loss_scale=loss_scale if est.loss_scale < 0 and loss_scale > 0 else est.loss_scale)
+    return replace(settings, noise_law=law, estimator=est)
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -512,6 +535,9 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument('--cn-sigma-rot-deg', type=float, help='[deg]')
     ap.add_argument('--estimator', choices=list(ESTIMATORS), help="'map' (online MAP) or 'ekf' (the paper's)")
     ap.add_argument('--loss', choices=list(LOSSES), help='MAP robust loss')
+    ap.add_argument('--loss-scale', type=float,
+                    help="MAP: whitened residual where the robust loss departs from the square [sigma] (default: "
+                         "the robot description's noise_model.loss_scale, else 3)")
     ap.add_argument('--covariance', choices=list(COVARIANCES),
                     help="MAP posterior covariance (default: the robot description's, else 'sandwich')")
     ap.add_argument('--change-probability', type=float, help='MAP change detection (0: off)')
@@ -525,13 +551,14 @@ def _parser() -> argparse.ArgumentParser:
                          'spread; 0: pinned, as before)')
     ap.add_argument('--noise-law', type=Path,
                     help="a YAML with a 'noise_model:' block (what tools.fit_noise prints): its law's covariance "
-                         'replaces each recorded one (a fixed camera only)')
+                         'replaces each recorded one (a fixed camera only), and its covariance and loss_scale '
+                         "keys are the estimator's, as if it were the description's")
     ap.add_argument('--no-plots', action='store_true', help='write the CSV only')
     return ap
 
 
 _OVERRIDES = ('robot', 'initial_seed', 'noise_model', 'cn_sigma_pos', 'cn_sigma_rot_deg', 'estimator', 'loss',
-              'covariance', 'change_probability', 'iterations', 'gate_probability', 'gate_warmup', 'camera_prior',
+              'loss_scale', 'covariance', 'change_probability', 'iterations', 'gate_probability', 'gate_warmup', 'camera_prior',
               'marker_prior', 'parallel_std')
 
 
@@ -543,7 +570,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         values.update({k: getattr(args, k) for k in _OVERRIDES if getattr(args, k) is not None})
         settings = EvaluationSettings.from_parameters(values, initial=args.initial)
         if args.noise_law is not None:
-            settings = replace(settings, noise_law=read_noise_law(args.noise_law))
+            settings = with_noise_law(settings, args.noise_law)
         ev = evaluate_bag(args.bag, settings)
     except (FileNotFoundError, ValueError) as exc:
         print(f'evaluate: {exc}', file=sys.stderr)

@@ -142,7 +142,8 @@ class EstimatorNode(Node):
                                   if extras is not None else '') +
                                f'with the {settings.estimator.upper()} estimator (initial guess: '
                                f'{s.initial_guess}, noise: {self.noise.noise_model}'
-                               + (f', covariance: {self.estimator.map.settings.covariance}'
+                               + (f', covariance: {self.estimator.map.settings.covariance}, loss: '
+                                  f'{self.estimator.map.settings.loss} at {self.estimator.map.settings.loss_scale:g} sigma'
                                   if self.estimator.map is not None else '') + ')')
 
     def _initial_guess(self, s: EstimatorNodeSettings) -> np.ndarray:

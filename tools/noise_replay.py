@@ -4,9 +4,10 @@ The law an observation is weighted with decides how much the estimate trusts it.
 takes every run of a ``tools.seed_study`` directory, re-runs its bag through the estimator
 twice with the run's own settings (``run.env`` and the packaged ``estimator.yaml``): once with
 the covariances the detector recorded, once with each observation's covariance replaced by the
-given law's at its hand pose (``evaluate --noise-law``; the block's ``covariance`` and ``loss_scale``,
-where set, are the estimator's), and prints both, seed by seed, with the paired comparison. The selector chose the poses with the recorded law, so this measures the
-estimator's weighting alone, not what a selector using the new law would pick.
+given law's at its hand pose (``evaluate --noise-law``; the block's ``covariance`` and
+``loss_scale``, where set, are the estimator's), and prints both, seed by seed, with the paired
+comparison. The selector chose the poses with the recorded law, so this measures the estimator's
+weighting alone, not what a selector using the new law would pick.
 
 Usage (from the repository root)::
 

@@ -137,14 +137,14 @@ class EstimatorNode(Node):
         self.create_service(Trigger, '~/export', self.on_export)
         self._announced = False     # the initial estimate waits for a joint state and a hand-pose publisher
         extras = self.estimator.extrinsics
+        ms = self.estimator.map.settings if self.estimator.map is not None else None
         self.get_logger().info(f'estimating {self.model.n_params} DH parameters of {self.model.name} '
                                + (f'with the {" and ".join(extras.blocks)} pose ({extras.n} more) '
                                   if extras is not None else '') +
                                f'with the {settings.estimator.upper()} estimator (initial guess: '
                                f'{s.initial_guess}, noise: {self.noise.noise_model}'
-                               + (f', covariance: {self.estimator.map.settings.covariance}, loss: '
-                                  f'{self.estimator.map.settings.loss} at {self.estimator.map.settings.loss_scale:g} sigma'
-                                  if self.estimator.map is not None else '') + ')')
+                               + (f', covariance: {ms.covariance}, loss: {ms.loss} at {ms.loss_scale:g} sigma'
+                                  if ms is not None else '') + ')')
 
     def _initial_guess(self, s: EstimatorNodeSettings) -> np.ndarray:
         if s.initial_guess == 'nominal':

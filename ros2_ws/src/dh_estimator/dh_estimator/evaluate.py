@@ -558,8 +558,8 @@ def _parser() -> argparse.ArgumentParser:
 
 
 _OVERRIDES = ('robot', 'initial_seed', 'noise_model', 'cn_sigma_pos', 'cn_sigma_rot_deg', 'estimator', 'loss',
-              'loss_scale', 'covariance', 'change_probability', 'iterations', 'gate_probability', 'gate_warmup', 'camera_prior',
-              'marker_prior', 'parallel_std')
+              'loss_scale', 'covariance', 'change_probability', 'iterations', 'gate_probability', 'gate_warmup',
+              'camera_prior', 'marker_prior', 'parallel_std')
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -34,6 +34,7 @@ from typing import Sequence
 
 import numpy as np
 
+from body_schema.map_estimator import LOSS_SCALE_RANGE, MapSettings
 from body_schema.noise import ConstantNoise, NoiseModel, PoseDependentNoise
 from body_schema.robot import NOISE_LAW_KEYS, ArmModel, load_robot
 from body_schema.sampling import uniform_configs
@@ -141,13 +142,11 @@ def loss_scale_for(spread: float) -> float:
     the errors as with a right law; 0 (the estimator's default) within :data:`SPREAD_TOLERANCE`
     of 1.
     """
-    from body_schema.map_estimator import MapSettings
-
     if not np.isfinite(spread) or spread <= 0:
         raise ValueError(f'spread must be finite and > 0, got {spread}')
     if abs(spread - 1.0) <= SPREAD_TOLERANCE:
         return 0.0
-    return float(np.clip(MapSettings.loss_scale * spread, 0.1, 100.0))
+    return float(np.clip(MapSettings.loss_scale * spread, *LOSS_SCALE_RANGE))
 
 
 def shape(model: NoiseModel, out: FrameScores, cameras: np.ndarray) -> dict[str, object]:
@@ -211,7 +210,7 @@ def run(robot: str, n: int, seed: int, pixel_noise: float, depth: bool = False,
     elif loss_scale:
         scale_text = ('`--loss-scale` adds loss_scale {:.2g} to the block (the robust loss then departs from the '
                       'square at {:g} typical errors rather than at {:g} of the law\'s standard '
-                      'deviations).'.format(loss_scale, loss_scale / spread, loss_scale / spread))
+                      'deviations).'.format(loss_scale, loss_scale / spread, MapSettings.loss_scale))
     else:
         scale_text = 'the estimator\'s default loss scale.'
     s = summarize(out, frames)

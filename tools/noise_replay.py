@@ -49,11 +49,11 @@ def run_settings(run: Path):  # -> dh_estimator.evaluate.EvaluationSettings
     return EvaluationSettings.from_parameters(values)
 
 
-def replay(study: Path, law: Path) -> list[dict[str, float]]:
+def replay(study: Path, law: tuple[tuple[tuple[str, float], ...], str, float]) -> list[dict[str, float]]:
     """One row per run of ``study`` (``seed_<S>/calibration.mcap``): final errors, information
-    limit and NEES with the recorded covariances and with the law of the ``noise_model:`` block
-    in the file ``law`` (and its estimator keys, ``covariance`` and ``loss_scale``, where set:
-    :func:`dh_estimator.evaluate.with_noise_law`)."""
+    limit and NEES with the recorded covariances and with the law of a ``noise_model:`` block
+    (:func:`dh_estimator.evaluate.read_noise_block`; its estimator keys, ``covariance`` and
+    ``loss_scale``, where set: :func:`dh_estimator.evaluate.with_noise_law`)."""
     from dh_estimator.evaluate import evaluate_bag, with_noise_law
 
     rows = []
@@ -106,7 +106,7 @@ def report(rows: Sequence[dict[str, float]], title: str) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from dh_estimator.evaluate import read_noise_law    # checks the file before any run
+    from dh_estimator.evaluate import read_noise_block
 
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     ap.add_argument('study', type=Path, help='a tools.seed_study output directory')
@@ -114,8 +114,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument('--output', type=Path, help='also write the report here')
     args = ap.parse_args(list(argv) if argv is not None else None)
     try:
-        read_noise_law(args.noise_law)
-        rows = replay(args.study, args.noise_law)
+        rows = replay(args.study, read_noise_block(args.noise_law))
     except (FileNotFoundError, ValueError) as exc:
         print(f'noise_replay: {exc}', file=sys.stderr)
         return 2

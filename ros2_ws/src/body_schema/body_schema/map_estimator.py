@@ -84,7 +84,8 @@ from . import kinematics
 from .ekf import FilterError, InvalidInputError
 from .extrinsics import Extrinsics, pose_delta
 
-__all__ = ['MapSettings', 'MapUpdate', 'MapEstimator', 'LOSSES', 'COVARIANCES', 'sandwich_covariance']
+__all__ = ['MapSettings', 'MapUpdate', 'MapEstimator', 'LOSSES', 'COVARIANCES', 'LOSS_SCALE_RANGE',
+           'sandwich_covariance']
 
 #: Robust losses of ``scipy.optimize.least_squares`` accepted by :class:`MapSettings`.
 LOSSES = ('linear', 'huber', 'soft_l1', 'cauchy', 'arctan')
@@ -118,6 +119,9 @@ _PSI_SLOPE = {
 
 #: How the posterior covariance is computed (:attr:`MapSettings.covariance`).
 COVARIANCES = ('sandwich', 'sandwich_hc3', 'gauss_newton')
+
+#: Loss scales [standard deviations] a robot description or the estimator's parameter may set.
+LOSS_SCALE_RANGE = (0.1, 100.0)
 
 
 def sandwich_covariance(jp: NDArray[np.float64], jo: NDArray[np.float64], u: NDArray[np.float64], loss: str,

@@ -732,7 +732,7 @@ def parse_noise_law(n: Any, where: str) -> tuple[dict[str, float], str, float]:
         that is not a number or out of its range (coefficients >= 0, ``depth_ratio`` > 0,
         ``loss_scale`` in [0.1, 100]), or an unknown ``covariance``.
     """
-    from .map_estimator import COVARIANCES     # here: map_estimator is a higher layer than robot
+    from .map_estimator import COVARIANCES, LOSS_SCALE_RANGE     # here: map_estimator is a higher layer than robot
 
     settings = ['covariance', 'loss_scale']
     if not isinstance(n, dict):
@@ -748,8 +748,10 @@ def parse_noise_law(n: Any, where: str) -> tuple[dict[str, float], str, float]:
             loss_scale = float(v)
         except (TypeError, ValueError) as exc:
             raise RobotDescriptionError(f'{where}.loss_scale: must be a number, got {v!r}') from exc
-        if not 0.1 <= loss_scale <= 100.0:          # the estimator's own range for the parameter
-            raise RobotDescriptionError(f'{where}.loss_scale: must be in [0.1, 100] (standard deviations), got {v!r}')
+        lo, hi = LOSS_SCALE_RANGE
+        if not lo <= loss_scale <= hi:
+            raise RobotDescriptionError(f'{where}.loss_scale: must be in [{lo:g}, {hi:g}] (standard deviations), '
+                                        f'got {v!r}')
     unknown = sorted(set(n) - set(NOISE_LAW_KEYS))
     if unknown:
         raise RobotDescriptionError(f'{where}: unknown keys {unknown}; expected some of '

@@ -34,7 +34,7 @@ from body_schema import ArmModel
 from body_schema import ekf as ekf_mod
 from body_schema import extrinsics as extrinsics_mod
 from body_schema import identifiability
-from body_schema.map_estimator import COVARIANCES, LOSSES, MapEstimator, MapSettings
+from body_schema.map_estimator import COVARIANCES, LOSS_SCALE_RANGE, LOSSES, MapEstimator, MapSettings
 from body_schema.urdf import FixedLink, model_urdf, transform_to_xyz_rpy
 from calibration_interfaces.contract import optical_frame
 from calibration_interfaces.dh_file import modified_section, write_dh_file
@@ -93,7 +93,7 @@ class EstimatorSettings:
     loss: str = setting(_MAP.loss, 'MAP: robust loss on the whitened residual', choices=LOSSES)
     loss_scale: float = setting(-1.0, 'MAP: whitened residual where the robust loss departs from the square '
                                       "[sigma]; negative: the robot description's (noise_model.loss_scale, for "
-                                      f'a heavy-tailed law), else {_MAP.loss_scale:g}', (-1.0, 100.0))
+                                      f'a heavy-tailed law), else {_MAP.loss_scale:g}', (-1.0, LOSS_SCALE_RANGE[1]))
     outlier_probability: float = setting(_MAP.outlier_probability, 'MAP: chi-square probability (6 dof) beyond '
                                                                    'which an observation is reported an outlier',
                                          (0.5, 0.999999))
@@ -169,8 +169,9 @@ class EstimatorSettings:
             raise ValueError(f'gate_warmup must be >= 0, got {self.gate_warmup}')
         if self.iterations < 1:
             raise ValueError(f'iterations must be >= 1, got {self.iterations}')
-        if 0.0 <= self.loss_scale < 0.1:
-            raise ValueError(f'loss_scale must be negative (the description\'s) or >= 0.1, got {self.loss_scale}')
+        if 0.0 <= self.loss_scale < LOSS_SCALE_RANGE[0]:
+            raise ValueError(f'loss_scale must be negative (the description\'s) or >= {LOSS_SCALE_RANGE[0]:g}, '
+                             f'got {self.loss_scale}')
         if any(p is not None for p in self.extrinsic_priors) and self.estimator != 'map':
             raise ValueError(f'camera_prior / marker_prior need estimator map, got {self.estimator!r}')
 

@@ -477,17 +477,26 @@ def _six(v: Sequence[float]) -> str:
 
 def read_noise_law(path: str | Path) -> tuple[tuple[str, float], ...]:
     """The coefficients of the ``noise_model:`` block in the YAML file ``path`` (``covariance`` and
-    ``loss_scale`` aside: :func:`with_noise_law` applies them too).
+    ``loss_scale`` aside: :func:`read_noise_block` has them too).
 
     Raises
     ------
     ValueError
         Naming the file, if it has no ``noise_model`` mapping or a key or value the law refuses.
     """
-    return _read_noise_block(path)[0]
+    return read_noise_block(path)[0]
 
 
-def _read_noise_block(path: str | Path) -> tuple[tuple[tuple[str, float], ...], str, float]:
+def read_noise_block(path: str | Path) -> tuple[tuple[tuple[str, float], ...], str, float]:
+    """The ``noise_model:`` block in the YAML file ``path``: the law's coefficients, and the
+    estimator's ``covariance`` ('' if not set) and ``loss_scale`` (0 if not set), for
+    :func:`with_noise_law`.
+
+    Raises
+    ------
+    ValueError
+        As :func:`read_noise_law`.
+    """
     data = yaml.safe_load(Path(path).read_text())
     block = data.get('noise_model') if isinstance(data, dict) else None
     if not isinstance(block, dict):
@@ -500,18 +509,14 @@ def _read_noise_block(path: str | Path) -> tuple[tuple[tuple[str, float], ...], 
     return tuple(law.items()), covariance, loss_scale
 
 
-def with_noise_law(settings: EvaluationSettings, path: str | Path) -> EvaluationSettings:
-    """``settings`` re-run as if the ``noise_model:`` block in ``path`` were the description's: its
-    law's covariance replaces each recorded one, and its ``covariance`` and ``loss_scale`` keys,
-    where the block sets them and ``settings`` leave them to the description, replace the
-    description's.
-
-    Raises
-    ------
-    ValueError
-        As :func:`read_noise_law`.
+def with_noise_law(settings: EvaluationSettings,
+                   block: tuple[tuple[tuple[str, float], ...], str, float]) -> EvaluationSettings:
+    """``settings`` re-run as if the ``noise_model:`` ``block`` (:func:`read_noise_block`) were the
+    description's: its law's covariance replaces each recorded one, and its ``covariance`` and
+    ``loss_scale``, where the block sets them and ``settings`` leave them to the description,
+    replace the description's.
     """
-    law, covariance, loss_scale = _read_noise_block(path)
+    law, covariance, loss_scale = block
     est = settings.estimator
     est = replace(est, covariance=est.covariance or covariance,
                   loss_scale=loss_scale if est.loss_scale < 0 and loss_scale > 0 else est.loss_scale)
@@ -570,7 +575,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         values.update({k: getattr(args, k) for k in _OVERRIDES if getattr(args, k) is not None})
         settings = EvaluationSettings.from_parameters(values, initial=args.initial)
         if args.noise_law is not None:
-            settings = with_noise_law(settings, args.noise_law)
+            settings = with_noise_law(settings, read_noise_block(args.noise_law))
         ev = evaluate_bag(args.bag, settings)
     except (FileNotFoundError, ValueError) as exc:
         print(f'evaluate: {exc}', file=sys.stderr)

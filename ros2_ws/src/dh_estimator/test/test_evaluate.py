@@ -478,11 +478,12 @@ def test_another_noise_law_replaces_the_recorded_covariances(tmp_path: Path, cap
     scaled = tmp_path / 'scaled.yaml'
     scaled.write_text('noise_model: {' + ', '.join(f'{k}: {v}' for k, v in law.items()) + ', loss_scale: 1.5}\n')
     base = EvaluationSettings.from_parameters(values)
-    assert evaluate_module.with_noise_law(base, scaled).estimator.loss_scale == 1.5
-    assert evaluate_module.with_noise_law(base, good).estimator.covariance == 'sandwich'
+    apply, read = evaluate_module.with_noise_law, evaluate_module.read_noise_block
+    assert apply(base, read(scaled)).estimator.loss_scale == 1.5
+    assert apply(base, read(good)).estimator.covariance == 'sandwich'
     pinned = replace(base, estimator=replace(base.estimator, loss_scale=2.0, covariance='gauss_newton'))
-    assert evaluate_module.with_noise_law(pinned, scaled).estimator.loss_scale == 2.0
-    assert evaluate_module.with_noise_law(pinned, good).estimator.covariance == 'gauss_newton'
+    assert apply(pinned, read(scaled)).estimator.loss_scale == 2.0
+    assert apply(pinned, read(good)).estimator.covariance == 'gauss_newton'
     assert evaluate_module.main([str(path), '--robot', 'ur5e', '--noise-law', str(bad), '--no-plots']) == 2
     assert f"{bad}: no 'noise_model:' mapping" in capsys.readouterr().err
     with pytest.raises(ValueError, match="re-applying a law needs a fixed camera; 'icub_right_arm' has none"):

@@ -33,6 +33,8 @@ Runs one online calibration of a simulated arm (the iCub right arm by default) a
   --image-size WxH  camera resolution, intrinsics scale with it         (default: the description's camera)
   --image-encoding E  what the simulated camera publishes: rgb8, bgr8, mono8, mono16, rgba8, bayer_rggb8,
                     bayer_bggr16, yuv422, yuv422_yuy2, ... (any sensor_msgs camera encoding) (default: rgb8)
+  --demosaicing M   the detector's demosaicing of a Bayer camera: vng | edge_aware | bilinear | mosaic
+                    (mosaic: every photosite read as grey, for a white-balanced sensor)  (default: vng)
   --transport T     raw | compressed: the detector reads image_raw (sensor_msgs/Image) or image_transport's
                     image_raw/compressed (JPEG, quality 90); the bag records that stream  (default: raw)
   --camera-info FILE  the detector's intrinsics from a camera_info_manager YAML (ost.yaml, as the ROS
@@ -77,14 +79,14 @@ is_number() { [[ "$1" =~ ^[0-9]*\.?[0-9]+$ ]]; }
 
 robot=icub_right_arm; strategy=al; iterations=50; seed=1; output=results/run; noise=pose_dependent; rtf=1.0; estimator=map
 body_change=""; body_change_at=""; camera_error=""; marker_error=""; overwrite=0; resume=""
-image_size=""; image_encoding=rgb8; transport=raw; camera_info=""; record_images=1; domain_id=""; timeout=""; viz=0; viz_port=8080
+image_size=""; image_encoding=rgb8; demosaicing=""; transport=raw; camera_info=""; record_images=1; domain_id=""; timeout=""; viz=0; viz_port=8080
 max_timeouts=0.2; max_dh_difference=1e-4
 plan_only=0; poses=""; speed_scale=1.0; margin=""; collision_check=1
 given=()   # run-defining options on the command line (a resumed run keeps its own)
 while [ $# -gt 0 ]; do
   case "$1" in
     --robot|--strategy|--iterations|--seed|--noise|--estimator|--body-change|--body-change-at|--image-size|\
-    --camera-error|--marker-error|--poses|--speed-scale|--margin|--image-encoding|--transport|--camera-info|--rtf)
+    --camera-error|--marker-error|--poses|--speed-scale|--margin|--image-encoding|--demosaicing|--transport|--camera-info|--rtf)
       need_value "$@"; given+=("$1") ;;&
     --output|--resume|--domain-id|--timeout|--viz-port|--max-timeouts|--max-dh-difference)
       need_value "$@" ;;&
@@ -104,6 +106,7 @@ while [ $# -gt 0 ]; do
     --marker-error) marker_error=$2; shift 2 ;;
     --image-size) image_size=$2; shift 2 ;;
     --image-encoding) image_encoding=$2; shift 2 ;;
+    --demosaicing) demosaicing=$2; shift 2 ;;
     --transport) transport=$2; shift 2 ;;
     --camera-info) camera_info=$2; shift 2 ;;
     --no-images) record_images=0; given+=("$1"); shift ;;
@@ -229,6 +232,9 @@ config=$(share_dir calibration_bringup)/config || \
 python3 -c 'import sys; from calibration_interfaces.image_conversion import ENCODINGS as E
 sys.exit(0 if sys.argv[1] in E else f"run_calibration: --image-encoding must be one of {sorted(E)}, got {sys.argv[1]!r}")' \
   "$image_encoding" || exit 2
+[ -z "$demosaicing" ] || python3 -c 'import sys; from calibration_interfaces.image_conversion import DEMOSAICING as D
+sys.exit(0 if sys.argv[1] in D else f"run_calibration: --demosaicing must be one of {list(D)}, got {sys.argv[1]!r}")' \
+  "$demosaicing" || exit 2
 if [ -n "$camera_info" ]; then
   python3 -c 'import sys; from calibration_interfaces.camera_info_file import CameraInfoFileError, read_camera_info
 try:
@@ -335,7 +341,7 @@ else
   bag="$output/calibration.mcap"
   {
     for var in robot strategy iterations seed noise estimator body_change body_change_at camera_error marker_error \
-               image_size image_encoding transport camera_info record_images rtf poses speed_scale margin \
+               image_size image_encoding demosaicing transport camera_info record_images rtf poses speed_scale margin \
                collision_check; do
       printf '%s=%q\n' "$var" "${!var}"
     done
@@ -375,6 +381,7 @@ print("[" + ",".join(t for t in I if (t in C) == (sys.argv[1] == "raw")) + "]")'
 recorder_args+=(-p "exclude:=$other_images")
 sim_args+=(-p "image_encoding:=$image_encoding")
 detector_args=(-p "transport:=$transport")
+[ -z "$demosaicing" ] || detector_args+=(-p "demosaicing:=$demosaicing")
 if [ "$transport" = compressed ]; then sim_args+=(-p "compressed_format:=jpeg"); fi
 [ -z "$camera_info" ] || detector_args+=(-p "camera_info_url:=file://$camera_info")
 extrinsics_args=()   # the real camera / marker off the description's, estimated with the arm

@@ -79,6 +79,7 @@ def _start(out: Path, *args: str) -> subprocess.Popen:
     (['--rtf', '2', '--resume', '/nonexistent-run-dir'], '--rtf'),   # run.env's rtf would silently win
     (['--transport', 'theora'], '--transport'),
     (['--image-encoding', 'nv24'], '--image-encoding'),
+    (['--demosaicing', 'nearest'], '--demosaicing'),
     (['--camera-info', '/nonexistent/ost.yaml'], '--camera-info'),
     (['--margin', '0.05', '--no-collision-check'], '--no-collision-check'),
 ])

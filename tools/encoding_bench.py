@@ -66,7 +66,7 @@ VARIANTS: tuple[Variant, ...] = (
     *(Variant(e, e) for e in ('rgb8', 'bgr8', 'rgba8', 'bgra8', 'mono8', 'rgb16', 'bgr16', 'rgba16', 'bgra16',
                               'mono16')),
     *(Variant(f'bayer_{p}{b}', f'bayer_{p}{b}') for b in (8, 16) for p in ('rggb', 'bggr', 'gbrg', 'grbg')),
-    *(Variant(f'bayer_rggb8, {m}', 'bayer_rggb8', demosaicing=m) for m in ('edge_aware', 'bilinear')
+    *(Variant(f'bayer_rggb8, {m}', 'bayer_rggb8', demosaicing=m) for m in ('edge_aware', 'bilinear', 'mosaic')
       if m != DEMOSAICING),
     Variant('uyvy (yuv422)', 'uyvy'), Variant('yuyv (yuv422_yuy2)', 'yuyv'),
     Variant(f'compressed JPEG q{JPEG_QUALITY} (rgb8)', 'rgb8', 'jpeg'),

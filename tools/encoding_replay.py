@@ -40,9 +40,10 @@ from tools.encoding_bench import VARIANTS, Variant, message_for
 
 __all__ = ['REPLAYED', 'redetect', 'failures', 'main']
 
-#: rgb8 (the reference, re-detected), the detector's Bayer path, cv_bridge's, and JPEG q90.
+#: rgb8 (the reference, re-detected), the detector's Bayer path, cv_bridge's, the photosites as
+#: grey, and JPEG q90.
 REPLAYED: tuple[Variant, ...] = tuple(v for v in VARIANTS if v.name in (
-    'rgb8', 'bayer_rggb8', 'bayer_rggb8, bilinear', f'compressed JPEG q{90} (rgb8)'))
+    'rgb8', 'bayer_rggb8', 'bayer_rggb8, bilinear', 'bayer_rggb8, mosaic', f'compressed JPEG q{90} (rgb8)'))
 IMAGE = '/camera/left/image_raw'
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / 'ros2_ws' / 'src' / 'calibration_bringup' / 'config'

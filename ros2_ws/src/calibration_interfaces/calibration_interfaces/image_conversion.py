@@ -9,7 +9,11 @@ module covers the camera encodings of ``sensor_msgs/image_encodings.hpp`` that d
   their 16-bit forms, demosaiced by OpenCV's ``cvtColor``: ``bilinear`` (the default, as
   cv_bridge does), ``edge_aware`` or ``vng`` (variable number of gradients: fewer zipper
   artefacts along edges, so marker corners closer to a colour camera's; slower, see
-  ``tools/encoding_bench.py``);
+  ``tools/encoding_bench.py``); or, for grey output, ``mosaic``: no interpolation, every
+  photosite read as a grey level. On a grey surface (the black-and-white marker) a
+  white-balanced sensor's red, green and blue sites all read its luminance, so the mosaic *is*
+  the full-resolution grey image there, which interpolation only blurs; colour areas show the
+  pattern's checkerboard. Colour output from ``mosaic`` is demosaiced with ``vng``;
 * YUV 4:2:2 in both byte orders: ``uyvy`` (alias ``yuv422``, the older name) and ``yuyv``
   (alias ``yuv422_yuy2``).
 
@@ -113,8 +117,9 @@ ENCODINGS: dict[str, Encoding] = _table()
 OUTPUT_ENCODINGS = ('mono8', 'rgb8', 'bgr8')
 #: Codecs of the compressed transport.
 COMPRESSED_FORMATS = ('jpeg', 'png')
-#: OpenCV's demosaicing algorithms for Bayer images (``bilinear``: cv_bridge's).
-DEMOSAICING = ('bilinear', 'edge_aware', 'vng')
+#: Demosaicing of Bayer images: OpenCV's algorithms (``bilinear``: cv_bridge's), and ``mosaic``
+#: (grey output: the photosites as they are; colour output: ``vng``).
+DEMOSAICING = ('bilinear', 'edge_aware', 'vng', 'mosaic')
 #: The 8-bit output of each kind that needs no colour conversion.
 _SAME = {'mono': 'mono8', 'rgb': 'rgb8', 'bgr': 'bgr8'}
 
@@ -191,7 +196,7 @@ def image_to_array(msg: Any, desired_encoding: str = 'passthrough',
     desired_encoding : {'passthrough', 'mono8', 'rgb8', 'bgr8'}
         Output encoding; ``passthrough`` keeps the message's layout (16-bit values in native
         byte order).
-    demosaicing : {'bilinear', 'edge_aware', 'vng'}
+    demosaicing : {'bilinear', 'edge_aware', 'vng', 'mosaic'}
         For Bayer encodings (:data:`DEMOSAICING`).
 
     Returns
@@ -276,8 +281,8 @@ def convert_array(img: NDArray[Any], encoding: Encoding | str, desired: str,
     img : ndarray, the encoding's layout (:attr:`Encoding.shape_text`), uint8 or uint16
     encoding : Encoding or str
     desired : {'mono8', 'rgb8', 'bgr8'}
-    demosaicing : {'bilinear', 'edge_aware', 'vng'}
-        For Bayer encodings.
+    demosaicing : {'bilinear', 'edge_aware', 'vng', 'mosaic'}
+        For Bayer encodings (:data:`DEMOSAICING`).
 
     Returns
     -------
@@ -293,8 +298,11 @@ def convert_array(img: NDArray[Any], encoding: Encoding | str, desired: str,
         raise ImageConversionError('demosaicing', f'unsupported {demosaicing!r}; expected one of {list(DEMOSAICING)}')
     if enc.bits == 16:
         img = (img >> 8).astype(np.uint8)          # the high byte: v * 257 -> v exactly
-    if _SAME.get(enc.kind) == desired:
+    if _SAME.get(enc.kind) == desired or (enc.kind.startswith('bayer_') and demosaicing == 'mosaic'
+                                          and desired == 'mono8'):
         return np.array(img, dtype=np.uint8, order='C')
+    if demosaicing == 'mosaic':
+        demosaicing = 'vng'                        # colour for the viewers: the mosaic is grey only
     if not _CODES:
         _CODES.update(_cv2_codes())
     img = np.ascontiguousarray(img)
@@ -468,7 +476,7 @@ def compressed_to_array(msg: Any, desired_encoding: str = 'passthrough',
         ``passthrough``: the decoded payload as it is (colour in the payload's channel order).
         ``mono8`` of a colour JPEG decodes straight to the JPEG's luma (OpenCV's
         ``IMREAD_GRAYSCALE``, which skips the chroma).
-    demosaicing : {'bilinear', 'edge_aware', 'vng'}
+    demosaicing : {'bilinear', 'edge_aware', 'vng', 'mosaic'}
         For a Bayer payload.
 
     Returns

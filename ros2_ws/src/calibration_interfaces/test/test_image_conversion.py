@@ -124,6 +124,32 @@ def test_bayer_patterns_demosaic_to_the_colour_that_was_mosaicked(pattern: str, 
     np.testing.assert_array_equal(bgr[2:-2, 2:-2], flat[2:-2, 2:-2, ::-1])
 
 
+@pytest.mark.parametrize('pattern', ['rggb', 'bggr', 'gbrg', 'grbg'])
+@pytest.mark.parametrize('bits', [8, 16])
+def test_mosaic_reads_every_photosite_as_grey(pattern: str, bits: int) -> None:
+    rng = np.random.default_rng(3)
+    name = f'bayer_{pattern}{bits}'
+    # A grey scene (R = G = B at every pixel, as on the marker): the mosaic is its grey image
+    # exactly, at full resolution, where every interpolating algorithm blurs its edges.
+    grey = rng.integers(0, 256, (8, 10), dtype=np.uint8)
+    msg = _msg(**rgb_to_image_fields(np.repeat(grey[..., None], 3, axis=2), name))
+    np.testing.assert_array_equal(image_to_gray(msg, 'mosaic'), grey)
+    assert not np.array_equal(image_to_gray(msg, 'vng'), grey)
+    # A colour scene: the photosites as they are (the pattern's checkerboard), 16 bits reduced
+    # to their high byte; colour output is VNG's.
+    rgb = rng.integers(0, 256, (8, 10, 3), dtype=np.uint8)
+    msg = _msg(**rgb_to_image_fields(rgb, name))
+    np.testing.assert_array_equal(image_to_gray(msg, 'mosaic'), _ros_mosaic(rgb, pattern))
+    np.testing.assert_array_equal(image_to_array(msg, 'rgb8', 'mosaic'), image_to_array(msg, 'rgb8', 'vng'))
+
+
+def test_mosaic_leaves_other_encodings_alone() -> None:
+    rgb = np.random.default_rng(4).integers(0, 256, (6, 8, 3), dtype=np.uint8)
+    for name in ('rgb8', 'mono16', 'yuyv'):
+        msg = _msg(**rgb_to_image_fields(rgb, name))
+        np.testing.assert_array_equal(image_to_gray(msg, 'mosaic'), image_to_gray(msg), err_msg=name)
+
+
 @pytest.mark.parametrize('name, first', [('uyvy', 'chroma'), ('yuv422', 'chroma'), ('yuyv', 'luma'),
                                          ('yuv422_yuy2', 'luma')])
 def test_yuv422_byte_orders(name: str, first: str) -> None:

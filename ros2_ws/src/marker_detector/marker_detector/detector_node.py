@@ -89,8 +89,10 @@ class DetectorNodeSettings:
     stereo_timeout: float = setting(0.5, 'Seconds one eye waits for the other eye of the same stamp', (0.0, 10.0))
     transport: str = setting('raw', 'Image transport: raw (camera/<eye>/image_raw, sensor_msgs/Image) or compressed '
                              '(camera/<eye>/image_raw/compressed, JPEG or PNG)', choices=IMAGE_TRANSPORTS)
-    demosaicing: str = setting('vng', 'Demosaicing of Bayer images: vng (corners closest to a colour camera\'s, '
-                               'tools/encoding_bench.py), edge_aware, or bilinear (cv_bridge\'s, the fastest)',
+    demosaicing: str = setting('vng', 'Demosaicing of Bayer images: vng (corners closest to a colour camera\'s of '
+                               'the interpolations, tools/encoding_bench.py), edge_aware, bilinear (cv_bridge\'s, '
+                               'the fastest), or mosaic (every photosite read as grey, no interpolation: exact on '
+                               'the black-and-white marker for a white-balanced sensor, docs/nodes/detector.md)',
                                choices=DEMOSAICING)
     camera_info_url: str = setting('', 'Left (or only) camera\'s intrinsics from a camera_info_manager YAML file '
                                    '(ost.yaml; file://, package:// or a path) instead of its camera_info topic; '

@@ -13,7 +13,9 @@ module covers the camera encodings of ``sensor_msgs/image_encodings.hpp`` that d
   photosite read as a grey level. On a grey surface (the black-and-white marker) a
   white-balanced sensor's red, green and blue sites all read its luminance, so the mosaic *is*
   the full-resolution grey image there, which interpolation only blurs; colour areas show the
-  pattern's checkerboard. Colour output from ``mosaic`` is demosaiced with ``vng``;
+  pattern's checkerboard. Colour output from ``mosaic`` is demosaiced with ``vng``. A camera
+  that does not apply its white balance to the raw data needs the gains applied here
+  (:func:`balance_mosaic`, with :func:`mosaic_gains` measured on an image of a white sheet);
 * YUV 4:2:2 in both byte orders: ``uyvy`` (alias ``yuv422``, the older name) and ``yuyv``
   (alias ``yuv422_yuy2``).
 
@@ -46,6 +48,7 @@ Building an Image: ``msg.data`` accepts bytes far faster (~500x) than a numpy ar
 from __future__ import annotations
 
 import re
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -54,7 +57,8 @@ from numpy.typing import NDArray
 
 __all__ = ['ImageConversionError', 'Encoding', 'ENCODINGS', 'OUTPUT_ENCODINGS', 'COMPRESSED_FORMATS', 'DEMOSAICING',
            'image_to_array', 'image_to_gray', 'convert_array', 'compressed_to_array', 'message_to_array', 'message_to_gray',
-           'encode_rgb', 'array_to_image_fields', 'rgb_to_image_fields', 'compress', 'parse_compressed_format']
+           'encode_rgb', 'array_to_image_fields', 'rgb_to_image_fields', 'compress', 'parse_compressed_format',
+           'message_encoding', 'balance_mosaic', 'mosaic_gains']
 
 #: Refuse absurd sizes before allocating (a corrupted header must not exhaust memory).
 _MAX_SIDE = 1 << 15
@@ -591,3 +595,73 @@ def message_to_array(msg: Any, desired_encoding: str = 'passthrough', demosaicin
 def message_to_gray(msg: Any, demosaicing: str = 'bilinear') -> NDArray[np.uint8]:
     """Either kind of image message as 8-bit grey levels, shape (H, W)."""
     return message_to_array(msg, 'mono8', demosaicing)
+
+
+# ----------------------------------------------------------------------------------------------
+# A Bayer mosaic read as grey: white balance
+
+
+def message_encoding(msg: Any) -> str:
+    """The camera encoding of either kind of image message (a CompressedImage's from its
+    ``format``; ``''`` where a bare ``"jpeg"`` format does not say)."""
+    if hasattr(msg, 'format') and not hasattr(msg, 'encoding'):
+        return parse_compressed_format(str(_field(msg, 'format')))[0]
+    return str(_field(msg, 'encoding'))
+
+
+def _site_colours(shape: tuple[int, ...], encoding: str) -> NDArray[np.intp]:
+    """Colour index (0 red, 1 green, 2 blue) of every photosite of a ``shape`` (H, W) mosaic."""
+    enc = _encoding(encoding)
+    if not enc.kind.startswith('bayer_'):
+        raise ImageConversionError('encoding', f'{encoding!r} is not a Bayer encoding')
+    tile = np.array([{'r': 0, 'g': 1, 'b': 2}[c] for c in enc.kind[len('bayer_'):]]).reshape(2, 2)
+    return np.tile(tile, ((shape[0] + 1) // 2, (shape[1] + 1) // 2))[:shape[0], :shape[1]]
+
+
+def balance_mosaic(grey: NDArray[np.uint8], encoding: str, gains: Sequence[float]) -> NDArray[np.uint8]:
+    """A Bayer image read as grey (``demosaicing='mosaic'``) with each photosite multiplied by its
+    colour's white-balance gain: what a camera that balances its raw data would have sent.
+
+    Parameters
+    ----------
+    grey : ndarray, uint8, shape (H, W)
+        The mosaic, as :func:`message_to_gray` returns it with ``demosaicing='mosaic'``.
+    encoding : str
+        Its Bayer encoding (``bayer_rggb8`` ...): which colour each site sees.
+    gains : sequence of 3 float
+        Red, green and blue gains, each > 0 (:func:`mosaic_gains`).
+
+    Returns
+    -------
+    ndarray, uint8, shape (H, W); rounded, clipped to 0-255.
+
+    Raises
+    ------
+    ImageConversionError
+        ``encoding`` is not a Bayer one, or ``gains`` are not three positive finite numbers.
+    """
+    g = np.asarray(gains, dtype=float)
+    if g.shape != (3,) or not np.all(np.isfinite(g)) or not np.all(g > 0):
+        raise ImageConversionError('gains', f'expected three positive finite gains (red, green, blue), got {list(gains)}')
+    scaled = grey * g[_site_colours(grey.shape, encoding)]
+    return np.clip(np.rint(scaled), 0, 255).astype(np.uint8)
+
+
+def mosaic_gains(grey: NDArray[np.uint8], encoding: str) -> tuple[float, float, float]:
+    """White-balance gains (red, green, blue; green 1) for :func:`balance_mosaic`, from a mosaic of
+    a white or grey surface filling the image (a sheet of paper in front of the camera, neither
+    black nor saturated): the green sites' mean over each colour's.
+
+    Raises
+    ------
+    ImageConversionError
+        ``encoding`` is not a Bayer one, or a colour's sites are dark (mean under 10 grey levels:
+        no surface to balance on) or saturated (over 245).
+    """
+    colours = _site_colours(grey.shape, encoding)
+    means = np.array([float(np.mean(grey[colours == c])) for c in range(3)])
+    for name, m in zip(('red', 'green', 'blue'), means):
+        if not 10.0 <= m <= 245.0:
+            raise ImageConversionError('data', f'the {name} sites average {m:.1f} grey levels; a white sheet '
+                                       f'needs 10-245 (not dark, not saturated)')
+    return float(means[1] / means[0]), 1.0, float(means[1] / means[2])

@@ -11,9 +11,10 @@ import numpy as np
 import pytest
 
 from calibration_interfaces.image_conversion import (ENCODINGS, ImageConversionError, array_to_image_fields,
-                                                     compress, compressed_to_array, encode_rgb, image_to_array,
-                                                     image_to_gray, message_to_array, message_to_gray,
-                                                     parse_compressed_format, rgb_to_image_fields)
+                                                     balance_mosaic, compress, compressed_to_array, encode_rgb,
+                                                     image_to_array, image_to_gray, message_encoding, message_to_array,
+                                                     message_to_gray, mosaic_gains, parse_compressed_format,
+                                                     rgb_to_image_fields)
 
 
 def _msg(**fields):
@@ -141,6 +142,36 @@ def test_mosaic_reads_every_photosite_as_grey(pattern: str, bits: int) -> None:
     msg = _msg(**rgb_to_image_fields(rgb, name))
     np.testing.assert_array_equal(image_to_gray(msg, 'mosaic'), _ros_mosaic(rgb, pattern))
     np.testing.assert_array_equal(image_to_array(msg, 'rgb8', 'mosaic'), image_to_array(msg, 'rgb8', 'vng'))
+
+
+@pytest.mark.parametrize('pattern', ['rggb', 'bggr', 'gbrg', 'grbg'])
+def test_a_white_sheet_gives_the_gains_that_balance_an_unbalanced_sensor(pattern: str) -> None:
+    # A sensor whose red sites see 0.5 and blue sites 0.8 of the green sites' response.
+    response = np.array([0.5, 1.0, 0.8])
+    name = f'bayer_{pattern}8'
+    white = np.full((6, 8, 3), 200.0)
+    sheet = _ros_mosaic(np.rint(white * response).astype(np.uint8), pattern)
+    gains = mosaic_gains(sheet, name)
+    np.testing.assert_allclose(gains, 1.0 / response, rtol=1e-12)
+    grey = np.random.default_rng(5).integers(0, 256, (6, 8)).astype(float)
+    raw = _ros_mosaic(np.rint(grey[..., None] * response).astype(np.uint8), pattern)
+    # Balanced, the grey scene comes back to within the rounding of the raw values (a gain of 2
+    # doubles it: one grey level).
+    assert np.abs(balance_mosaic(raw, name, gains).astype(int) - grey).max() <= 1
+    assert np.abs(raw.astype(int) - grey).max() > 50
+    assert message_encoding(_msg(**array_to_image_fields(raw, name))) == name
+    assert message_encoding(SimpleNamespace(format='bayer_rggb8; png compressed ', data=b'')) == 'bayer_rggb8'
+
+
+def test_balance_refuses_what_it_cannot_balance() -> None:
+    grey = np.full((4, 4), 100, np.uint8)
+    with pytest.raises(ImageConversionError, match='not a Bayer encoding'):
+        balance_mosaic(grey, 'rgb8', (1.0, 1.0, 1.0))
+    with pytest.raises(ImageConversionError, match=r'gains: .*got \[1.0, 0.0, 1.0\]'):
+        balance_mosaic(grey, 'bayer_rggb8', (1.0, 0.0, 1.0))
+    with pytest.raises(ImageConversionError, match='the red sites average 0.0'):
+        mosaic_gains(_ros_mosaic(np.dstack([np.zeros((4, 4)), grey, grey]).astype(np.uint8), 'rggb'), 'bayer_rggb8')
+    assert balance_mosaic(np.full((3, 3), 200, np.uint8), 'bayer_rggb8', (2.0, 1.0, 1.0)).max() == 255
 
 
 def test_mosaic_leaves_other_encodings_alone() -> None:

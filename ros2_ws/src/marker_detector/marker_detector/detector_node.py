@@ -36,7 +36,7 @@ call site, so a burst of one kind does not hide another.
 Parameters
 ----------
 Declared from :class:`marker_detector.detector_node.DetectorNodeSettings` (robot, stereo,
-transport, Bayer demosaicing, camera_info_url),
+transport, Bayer demosaicing and white-balance gains, camera_info_url),
 :class:`calibration_interfaces.noise.NoiseSettings` and
 :class:`~calibration_interfaces.noise.PoseDependentSettings` (``noise_model``: ``pose_dependent``
 | ``constant``, and their coefficients: by default the robot description's fitted law) and
@@ -94,6 +94,10 @@ class DetectorNodeSettings:
                                'the fastest), or mosaic (every photosite read as grey, no interpolation: exact on '
                                'the black-and-white marker for a white-balanced sensor, docs/nodes/detector.md)',
                                choices=DEMOSAICING)
+    bayer_gains: tuple[float, ...] = setting((1.0, 1.0, 1.0), 'With demosaicing mosaic: white-balance gains of the '
+                                             'red, green and blue sites, for a camera that does not balance its raw '
+                                             'data (measured on a white sheet with '
+                                             'calibration_interfaces.image_conversion.mosaic_gains); 1 1 1: as sent')
     camera_info_url: str = setting('', 'Left (or only) camera\'s intrinsics from a camera_info_manager YAML file '
                                    '(ost.yaml; file://, package:// or a path) instead of its camera_info topic; '
                                    'empty = the topic')
@@ -140,6 +144,10 @@ class DetectorNode(Node):
         self.root_frame = self.model.root_frame
         self.stereo = s.use_right_eye
         self.demosaicing = s.demosaicing
+        gains = np.asarray(s.bayer_gains, dtype=float)
+        if gains.shape != (3,) or not np.all(np.isfinite(gains)) or not np.all(gains > 0):
+            raise ValueError(f'bayer_gains must be three positive numbers (red, green, blue), got {list(s.bayer_gains)}')
+        self.bayer_gains = tuple(float(g) for g in gains)
         self._warn_once = WarnOnce(self)
         self._warn = WarnThrottled(self)
         self.frames_processed = 0
@@ -224,7 +232,8 @@ class DetectorNode(Node):
             result = FrameResult(bad_input=BadInput('pose.missing', f'no camera pose for the {eye.name} eye yet'))
         else:
             try:
-                result = judge_frame(self.estimator, msg, eye.calibration, eye.root_T_cam, self.demosaicing)
+                result = judge_frame(self.estimator, msg, eye.calibration, eye.root_T_cam, self.demosaicing,
+                                     self.bayer_gains)
             except Exception as exc:  # noqa: BLE001 (OpenCV surprises must not kill the node)
                 # Not evidence about the hand either way: a frame nobody could judge.
                 result = FrameResult(bad_input=BadInput(f'internal.{type(exc).__name__}',

@@ -16,7 +16,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from calibration_interfaces.image_conversion import ImageConversionError, message_to_gray
+from calibration_interfaces.image_conversion import (ImageConversionError, balance_mosaic, message_encoding,
+                                                     message_to_gray)
 
 from .detection import BadInput, FrameResult, HandPoseEstimator
 
@@ -76,7 +77,8 @@ def calibration_from_info(k: Sequence[float], d: Sequence[float], width: int, he
 
 
 def judge_frame(estimator: HandPoseEstimator, image: Any, calibration: CameraCalibration | BadInput,
-                root_T_cam: NDArray[np.float64] | None, demosaicing: str = 'bilinear') -> FrameResult:
+                root_T_cam: NDArray[np.float64] | None, demosaicing: str = 'bilinear',
+                bayer_gains: Sequence[float] = (1.0, 1.0, 1.0)) -> FrameResult:
     """Detect the hand in one image, or say why the image cannot be judged.
 
     Parameters
@@ -88,8 +90,11 @@ def judge_frame(estimator: HandPoseEstimator, image: Any, calibration: CameraCal
         The eye's latest camera_info: usable, or why it is not (a missing one included).
     root_T_cam : ndarray, shape (4, 4), or None
         Camera pose in the root frame; None gives the hand in the camera frame.
-    demosaicing : {'bilinear', 'edge_aware', 'vng'}
+    demosaicing : {'bilinear', 'edge_aware', 'vng', 'mosaic'}
         For a Bayer image (:data:`calibration_interfaces.image_conversion.DEMOSAICING`).
+    bayer_gains : sequence of 3 float
+        With ``mosaic``: the red, green and blue sites' white-balance gains
+        (:func:`~calibration_interfaces.image_conversion.balance_mosaic`); all 1 leaves them as sent.
 
     Returns
     -------
@@ -102,6 +107,9 @@ def judge_frame(estimator: HandPoseEstimator, image: Any, calibration: CameraCal
         return FrameResult(bad_input=calibration)
     try:
         gray = message_to_gray(image, demosaicing)
+        if demosaicing == 'mosaic' and tuple(bayer_gains) != (1.0, 1.0, 1.0) \
+                and message_encoding(image).startswith('bayer_'):
+            gray = balance_mosaic(gray, message_encoding(image), bayer_gains)
     except ImageConversionError as exc:
         return FrameResult(bad_input=BadInput(f'image.{exc.field}', str(exc)))
     if calibration.size is not None and calibration.size != (gray.shape[1], gray.shape[0]):

@@ -332,6 +332,9 @@ def test_constant_noise_and_invalid_parameters(ros: Any, model) -> None:
     assert desc.description and desc.floating_point_range
     with pytest.raises(ValueError, match='noise_model'):
         DetectorNode(context=ros.context, parameter_overrides=[Parameter('noise_model', value='gauss')])
+    with pytest.raises(ValueError, match=r'bayer_gains must be three positive numbers .*got \[1.0, -1.0, 1.0\]'):
+        DetectorNode(context=ros.context, parameter_overrides=[Parameter('bayer_gains', value=[1.0, -1.0, 1.0])])
+    assert _detector(ros, demosaicing='mosaic', bayer_gains=[2.2, 1.0, 1.4]).bayer_gains == (2.2, 1.0, 1.4)
 
 
 def test_stereo_pair_gives_one_fused_outcome(ros: Any, model) -> None:

@@ -15,7 +15,8 @@ from body_schema.noise import PoseDependentNoise
 from calibration_interfaces.outcome import FrameStatus
 from marker_detector.detection import BadInput, HandPoseEstimator
 from marker_detector.frame import calibration_from_info, judge_frame
-from calibration_interfaces.image_conversion import array_to_image_fields
+from calibration_interfaces.image_conversion import (array_to_image_fields, message_to_gray, mosaic_gains,
+                                                     rgb_to_image_fields)
 from marker_detector.synthetic import look_at_pose, render_markers
 
 
@@ -105,3 +106,27 @@ def test_a_camera_info_without_size_or_distortion_is_usable(estimator, scene) ->
     cal = calibration_from_info(**{**info, 'd': [], 'width': 0, 'height': 0})
     assert cal.size is None and cal.dist.tolist() == [0.0] * 5
     assert judge_frame(estimator, _image(rgb), cal, np.eye(4)).status is FrameStatus.DETECTED
+
+
+def test_the_white_balance_gains_make_an_unbalanced_bayer_camera_see_the_colour_one(estimator, scene) -> None:
+    """With ``mosaic``, a Bayer camera that does not balance its raw data (red sites at 0.45, blue
+    at 0.7 of the green's response) detects the marker where a colour camera does once its gains
+    are applied, and its hand pose moves less than without them."""
+    rgb, info = scene
+    cal = calibration_from_info(**info)
+    ref = judge_frame(estimator, _image(rgb), cal, np.eye(4)).hand.pose
+    response = np.array([0.45, 1.0, 0.7])
+    raw = np.rint(rgb * response).astype(np.uint8)
+    image = SimpleNamespace(**rgb_to_image_fields(raw, 'bayer_rggb8'))
+    white = SimpleNamespace(**rgb_to_image_fields(np.rint(np.full_like(rgb, 220) * response).astype(np.uint8),
+                                                  'bayer_rggb8'))
+    gains = mosaic_gains(message_to_gray(white, 'mosaic'), 'bayer_rggb8')
+    balanced = judge_frame(estimator, image, cal, np.eye(4), 'mosaic', gains)
+    assert balanced.status is FrameStatus.DETECTED
+    moved = 1e3 * np.linalg.norm(balanced.hand.pose[:3, 3] - ref[:3, 3])
+    assert moved < 0.1                                     # [mm]: the rounding of the raw values (0.05 here)
+    as_sent = judge_frame(estimator, image, cal, np.eye(4), 'mosaic')
+    assert as_sent.hand is None or 1e3 * np.linalg.norm(as_sent.hand.pose[:3, 3] - ref[:3, 3]) > 5 * moved   # 1.4 mm here
+    # Gains apply to Bayer images only: an rgb8 frame is judged as without them.
+    same = judge_frame(estimator, _image(rgb), cal, np.eye(4), 'mosaic', gains).hand.pose
+    np.testing.assert_array_equal(same, ref)

@@ -58,7 +58,7 @@ from numpy.typing import NDArray
 __all__ = ['ImageConversionError', 'Encoding', 'ENCODINGS', 'OUTPUT_ENCODINGS', 'COMPRESSED_FORMATS', 'DEMOSAICING',
            'image_to_array', 'image_to_gray', 'convert_array', 'compressed_to_array', 'message_to_array', 'message_to_gray',
            'encode_rgb', 'array_to_image_fields', 'rgb_to_image_fields', 'compress', 'parse_compressed_format',
-           'message_encoding', 'balance_mosaic', 'mosaic_gains']
+           'message_encoding', 'check_gains', 'balance_mosaic', 'mosaic_gains']
 
 #: Refuse absurd sizes before allocating (a corrupted header must not exhaust memory).
 _MAX_SIDE = 1 << 15
@@ -618,6 +618,20 @@ def _site_colours(shape: tuple[int, ...], encoding: str) -> NDArray[np.intp]:
     return np.tile(tile, ((shape[0] + 1) // 2, (shape[1] + 1) // 2))[:shape[0], :shape[1]]
 
 
+def check_gains(gains: Sequence[float]) -> tuple[float, float, float]:
+    """White-balance gains (red, green, blue) as three floats.
+
+    Raises
+    ------
+    ImageConversionError
+        ``gains`` are not three positive finite numbers.
+    """
+    g = np.asarray(gains, dtype=float)
+    if g.shape != (3,) or not np.all(np.isfinite(g)) or not np.all(g > 0):
+        raise ImageConversionError('gains', f'expected three positive finite gains (red, green, blue), got {list(gains)}')
+    return float(g[0]), float(g[1]), float(g[2])
+
+
 def balance_mosaic(grey: NDArray[np.uint8], encoding: str, gains: Sequence[float]) -> NDArray[np.uint8]:
     """A Bayer image read as grey (``demosaicing='mosaic'``) with each photosite multiplied by its
     colour's white-balance gain: what a camera that balances its raw data would have sent.
@@ -640,9 +654,7 @@ def balance_mosaic(grey: NDArray[np.uint8], encoding: str, gains: Sequence[float
     ImageConversionError
         ``encoding`` is not a Bayer one, or ``gains`` are not three positive finite numbers.
     """
-    g = np.asarray(gains, dtype=float)
-    if g.shape != (3,) or not np.all(np.isfinite(g)) or not np.all(g > 0):
-        raise ImageConversionError('gains', f'expected three positive finite gains (red, green, blue), got {list(gains)}')
+    g = np.array(check_gains(gains))
     scaled = grey * g[_site_colours(grey.shape, encoding)]
     return np.clip(np.rint(scaled), 0, 255).astype(np.uint8)
 

@@ -66,7 +66,7 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from body_schema import load_robot
 from calibration_interfaces.camera_info_file import CameraInfoFile, camera_info_differences, read_camera_info
 from calibration_interfaces.contract import IMAGE_TRANSPORTS, SENSOR, image_topic
-from calibration_interfaces.image_conversion import DEMOSAICING
+from calibration_interfaces.image_conversion import DEMOSAICING, ImageConversionError, check_gains
 from calibration_interfaces.messages import matrix_to_pose_msg, pose_msg_to_matrix
 from calibration_interfaces.node_util import WarnOnce, WarnThrottled, declare_settings, qos_profile, spin_node
 from calibration_interfaces.noise import NoiseSettings, PoseDependentSettings
@@ -144,10 +144,11 @@ class DetectorNode(Node):
         self.root_frame = self.model.root_frame
         self.stereo = s.use_right_eye
         self.demosaicing = s.demosaicing
-        gains = np.asarray(s.bayer_gains, dtype=float)
-        if gains.shape != (3,) or not np.all(np.isfinite(gains)) or not np.all(gains > 0):
-            raise ValueError(f'bayer_gains must be three positive numbers (red, green, blue), got {list(s.bayer_gains)}')
-        self.bayer_gains = tuple(float(g) for g in gains)
+        try:
+            self.bayer_gains = check_gains(s.bayer_gains)
+        except ImageConversionError as exc:
+            raise ValueError(f'bayer_gains must be three positive numbers (red, green, blue), '
+                             f'got {list(s.bayer_gains)}') from exc
         self._warn_once = WarnOnce(self)
         self._warn = WarnThrottled(self)
         self.frames_processed = 0

@@ -107,9 +107,10 @@ def judge_frame(estimator: HandPoseEstimator, image: Any, calibration: CameraCal
         return FrameResult(bad_input=calibration)
     try:
         gray = message_to_gray(image, demosaicing)
-        if demosaicing == 'mosaic' and tuple(bayer_gains) != (1.0, 1.0, 1.0) \
-                and message_encoding(image).startswith('bayer_'):
-            gray = balance_mosaic(gray, message_encoding(image), bayer_gains)
+        if demosaicing == 'mosaic' and tuple(bayer_gains) != (1.0, 1.0, 1.0):
+            encoding = message_encoding(image)
+            if encoding.startswith('bayer_'):
+                gray = balance_mosaic(gray, encoding, bayer_gains)
     except ImageConversionError as exc:
         return FrameResult(bad_input=BadInput(f'image.{exc.field}', str(exc)))
     if calibration.size is not None and calibration.size != (gray.shape[1], gray.shape[0]):

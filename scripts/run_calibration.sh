@@ -39,6 +39,9 @@ Runs one online calibration of a simulated arm (the iCub right arm by default) a
                     image_raw/compressed (JPEG, quality 90); the bag records that stream  (default: raw)
   --camera-info FILE  the detector's intrinsics from a camera_info_manager YAML (ost.yaml, as the ROS
                     camera_calibration tool writes it) instead of the camera_info topic
+  --eyes E          left | both: a robot with eyes detects with the left eye, or with both fused and the
+                    selection planned for either (default: both; left with --camera-error or --marker-error,
+                    whose corrections are one camera's; a fixed camera has its one)
   --no-images       do not record the camera images (smaller bag)
   --domain-id N     ROS_DOMAIN_ID 0-232; refused if another run holds it or a graph talks on it
                     (default: a free one in 100-199; discovery is localhost-only)
@@ -79,14 +82,15 @@ is_number() { [[ "$1" =~ ^[0-9]*\.?[0-9]+$ ]]; }
 
 robot=icub_right_arm; strategy=al; iterations=50; seed=1; output=results/run; noise=pose_dependent; rtf=1.0; estimator=map
 body_change=""; body_change_at=""; camera_error=""; marker_error=""; overwrite=0; resume=""
-image_size=""; image_encoding=rgb8; demosaicing=""; transport=raw; camera_info=""; record_images=1; domain_id=""; timeout=""; viz=0; viz_port=8080
+image_size=""; image_encoding=rgb8; demosaicing=""; transport=raw; camera_info=""; eyes=""; record_images=1; domain_id=""; timeout=""; viz=0; viz_port=8080
 max_timeouts=0.2; max_dh_difference=1e-4
 plan_only=0; poses=""; speed_scale=1.0; margin=""; collision_check=1
 given=()   # run-defining options on the command line (a resumed run keeps its own)
 while [ $# -gt 0 ]; do
   case "$1" in
     --robot|--strategy|--iterations|--seed|--noise|--estimator|--body-change|--body-change-at|--image-size|\
-    --camera-error|--marker-error|--poses|--speed-scale|--margin|--image-encoding|--demosaicing|--transport|--camera-info|--rtf)
+    --camera-error|--marker-error|--poses|--speed-scale|--margin|--image-encoding|--demosaicing|--transport|--camera-info|--rtf|\
+    --eyes)
       need_value "$@"; given+=("$1") ;;&
     --output|--resume|--domain-id|--timeout|--viz-port|--max-timeouts|--max-dh-difference)
       need_value "$@" ;;&
@@ -109,6 +113,7 @@ while [ $# -gt 0 ]; do
     --demosaicing) demosaicing=$2; shift 2 ;;
     --transport) transport=$2; shift 2 ;;
     --camera-info) camera_info=$2; shift 2 ;;
+    --eyes) eyes=$2; shift 2 ;;
     --no-images) record_images=0; given+=("$1"); shift ;;
     --no-collision-check) collision_check=0; given+=("$1"); shift ;;
     --domain-id) domain_id=$2; shift 2 ;;
@@ -139,6 +144,12 @@ case "$strategy" in random|al|ucsal|ccsal) ;; *) die "--strategy must be random,
 case "$noise" in pose_dependent|constant) ;; *) die "--noise must be pose_dependent or constant, got '$noise'" ;; esac
 case "$estimator" in map|ekf) ;; *) die "--estimator must be map or ekf, got '$estimator'" ;; esac
 case "$transport" in raw|compressed) ;; *) die "--transport must be raw or compressed, got '$transport'" ;; esac
+case "$eyes" in ''|left|both) ;; *) die "--eyes must be left or both, got '$eyes'" ;; esac
+if [ -n "$camera_error$marker_error" ]; then
+  # The extrinsic corrections the estimator estimates are one camera's (the left eye's).
+  [ "$eyes" != both ] || die "--eyes both and --camera-error / --marker-error exclude each other"
+  eyes=left
+fi
 if [ -n "$camera_info" ]; then
   [ -f "$camera_info" ] || die "--camera-info: no file '$camera_info'"
   camera_info=$(cd "$(dirname "$camera_info")" && pwd)/$(basename "$camera_info")   # the nodes run elsewhere
@@ -186,6 +197,9 @@ fi
   die "--poses: '$poses' does not exist"
 invalid=$(python3 -m calibration_interfaces.validate --robot "$robot" ${poses:+--poses "$poses"} 2>&1 >/dev/null) || \
   die "$(tail -n 1 <<<"$invalid")"
+[ "$eyes" != both ] || python3 -c 'import sys; from body_schema import load_robot
+sys.exit(0 if load_robot(sys.argv[1]).eyes is not None else f"run_calibration: --eyes both: robot {sys.argv[1]!r} has a fixed camera, no eyes")' \
+  "$robot" 2>/dev/null || die "--eyes both: robot '$robot' has a fixed camera, no eyes"
 if [ "$plan_only" = 1 ]; then
   # Nothing starts and nothing moves: the poses a run would visit, from the initial guess, for review.
   mkdir -p "$output"
@@ -341,7 +355,7 @@ else
   bag="$output/calibration.mcap"
   {
     for var in robot strategy iterations seed noise estimator body_change body_change_at camera_error marker_error \
-               image_size image_encoding demosaicing transport camera_info record_images rtf poses speed_scale margin \
+               image_size image_encoding demosaicing transport camera_info eyes record_images rtf poses speed_scale margin \
                collision_check; do
       printf '%s=%q\n' "$var" "${!var}"
     done
@@ -384,6 +398,9 @@ detector_args=(-p "transport:=$transport")
 [ -z "$demosaicing" ] || detector_args+=(-p "demosaicing:=$demosaicing")
 if [ "$transport" = compressed ]; then sim_args+=(-p "compressed_format:=jpeg"); fi
 [ -z "$camera_info" ] || detector_args+=(-p "camera_info_url:=file://$camera_info")
+eye_args=()          # the detector fuses and the selector plans for the same eyes
+[ -z "$eyes" ] || eye_args=(-p "use_right_eye:=$([ "$eyes" = both ] && echo true || echo false)")
+detector_args+=("${eye_args[@]}")
 extrinsics_args=()   # the real camera / marker off the description's, estimated with the arm
 [ -z "$camera_error" ] || { sim_args+=(-p "camera_perturbation:=$camera_error"); extrinsics_args+=(-p "camera_prior:=$camera_error"); }
 [ -z "$marker_error" ] || { sim_args+=(-p "marker_perturbation:=$marker_error"); extrinsics_args+=(-p "marker_prior:=$marker_error"); }
@@ -392,7 +409,8 @@ report_args=()       # the report's re-run estimates them too
 [ -z "$marker_error" ] || report_args+=(--marker-prior "$marker_error")
 
 echo "run_calibration: $robot, $strategy, $iterations iterations, seed $seed, noise $noise, estimator $estimator," \
-     "$size_text, $image_encoding over $transport, rtf $rtf, ROS_DOMAIN_ID $ROS_DOMAIN_ID, run $run_id -> $output"
+     "$size_text, $image_encoding over $transport, eyes ${eyes:-as the parameter files say}, rtf $rtf," \
+     "ROS_DOMAIN_ID $ROS_DOMAIN_ID, run $run_id -> $output"
 [ -z "$resume" ] || echo "run_calibration: resuming the run in $output; this part is recorded to $bag"
 [ -z "$body_change" ] || echo "run_calibration: the real robot changes by '$body_change' at iteration $body_change_at"
 [ -z "$camera_info" ] || echo "run_calibration: the detector's intrinsics come from $camera_info"
@@ -440,7 +458,7 @@ safety_args=(-p "speed_scale:=$speed_scale")
 start selector active_selector selector_node --ros-args --params-file "$config/selector.yaml" \
   -p "robot:=$robot" -p "strategy:=$strategy" -p "iterations:=$iterations" -p "seed:=$seed" -p "noise_model:=$noise" \
   -p "progress_file:=$output/progress.jsonl" -p "wait_for_recorder:=true" "${resume_args[@]}" \
-  "${extrinsics_args[@]}" "${safety_args[@]}"
+  "${extrinsics_args[@]}" "${safety_args[@]}" "${eye_args[@]}"
 
 # --- Wait for the selector; a node that dies fails the run ----------------------------------
 shown=0

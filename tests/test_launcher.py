@@ -82,6 +82,9 @@ def _start(out: Path, *args: str) -> subprocess.Popen:
     (['--demosaicing', 'nearest'], '--demosaicing'),
     (['--camera-info', '/nonexistent/ost.yaml'], '--camera-info'),
     (['--margin', '0.05', '--no-collision-check'], '--no-collision-check'),
+    (['--eyes', 'three'], '--eyes'),
+    (['--robot', 'ur5e', '--eyes', 'both'], '--eyes both'),          # a fixed camera has no second eye
+    (['--eyes', 'both', '--camera-error', '0.01 1'], '--eyes both'),  # the estimated extrinsics are one camera's
 ])
 def test_a_bad_option_exits_2_with_one_line_naming_it_and_starts_nothing(tmp_path: Path, args, named) -> None:
     out = tmp_path / 'run'

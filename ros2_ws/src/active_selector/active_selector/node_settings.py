@@ -1,6 +1,6 @@
 """Parameters of the selector node, described once on settings dataclasses (pure; no rclpy).
 
-The node declares, in order, :class:`SelectorNodeSettings` (robot, eye, files, reports),
+The node declares, in order, :class:`SelectorNodeSettings` (robot, eyes, files, reports),
 :class:`StrategySettings` (the strategy and its DIRECT search: :class:`body_schema.acquisition.SelectorConfig`,
 whose defaults it reuses), :class:`~active_selector.planner.PlannerSettings` (penalty, occlusion
 model), :class:`~active_selector.loop.LoopSettings` (iterations, settling, timeouts) and the
@@ -10,7 +10,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from body_schema import ArmModel
 from body_schema.acquisition import DIRECT_ALGORITHMS, LOCAL_ALGORITHMS, OPTIMIZERS, SelectorConfig, Strategy
+from body_schema.extrinsics import parse_std
 from calibration_interfaces.noise import NoiseSettings, PoseDependentSettings
 from calibration_interfaces.parameters import setting
 
@@ -29,6 +31,10 @@ class SelectorNodeSettings:
     robot: str = setting('icub_right_arm', 'Packaged robot name or YAML path')
     eye: str = setting('left', 'Which eye the detector uses (its camera pose enters the cost)',
                        choices=('left', 'right'))
+    use_right_eye: bool = setting(False, "Plan for both eyes, as the detector fuses them (set it to the detector's "
+                                  'use_right_eye): an attempt counts as seen when either eye sees the hand, and '
+                                  'the gain is that of the fused or single-eye detection (a robot with eyes; '
+                                  'ignored for a fixed camera)')
     progress_file: str = setting('', 'JSON-lines file, one object per iteration')
     wait_for_recorder: bool = setting(False, 'Select the first target only once /calibration/progress has a '
                                              'subscriber (the recorder, which subscribes to /arm/command in the '
@@ -52,6 +58,25 @@ class SelectorNodeSettings:
     poses_file: str = setting('', 'A pose list (calibration_interfaces.pose_list: a reviewed plan or taught poses) '
                                   'visited first, in order, each checked like a selection, before the strategy '
                                   'takes over')
+
+    def planned_eyes(self, model: ArmModel) -> tuple[str, ...]:
+        """The cameras the cost plans for: ``eye``, or both eyes with ``use_right_eye`` on a robot
+        that has them (a fixed camera has no right eye: the parameter files' stereo default is the
+        iCub's).
+
+        Raises
+        ------
+        ValueError
+            If both eyes are asked for together with estimated extrinsics (``camera_prior`` or
+            ``marker_prior``), which are one camera's.
+        """
+        if not (self.use_right_eye and model.eyes is not None):
+            return (self.eye,)
+        if any(parse_std(v, k) is not None for k, v in (('camera_prior', self.camera_prior),
+                                                          ('marker_prior', self.marker_prior))):
+            raise ValueError('use_right_eye cannot be combined with camera_prior / marker_prior (extrinsics are '
+                             'estimated for one camera)')
+        return ('left', 'right')
 
 
 @dataclass(frozen=True)

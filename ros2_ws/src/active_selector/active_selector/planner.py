@@ -67,6 +67,18 @@ class PlannerSettings:
                               'P_{k+1|k}); set it to the estimator\'s q_length', (0.0, 1.0))
     q_angle: float = setting(0.0, "The estimator's process-noise variance per update for alpha, offset [rad^2] "
                              '(as q_length)', (0.0, 1.0))
+    visibility_margin: float = setting(-2.0, 'Geometric prior: how far inside the image a marker\'s centre must lie '
+                                       '[fraction of the image width] (VisibilityPrior.margin); below -1: the '
+                                       "description's selection.visibility_margin (default 0.06)", (-2.0, 1.0))
+    visibility_marker_widths: float = setting(-1.0, 'Geometric prior: > 0 sizes the markers by the description '
+                                              '(viewing-angle limit where a marker is 7.5 px wide) and adds this many '
+                                              'projected marker widths to the margin (0.5: the whole marker inside '
+                                              "the image); negative: the description's "
+                                              'selection.visibility_marker_widths (default 0)', (-1.0, 10.0))
+    eye_correlation: float = setting(0.6, 'Stereo (use_right_eye): how one eye\'s visibility follows the other\'s, '
+                                     '0 independent .. 1 nested; P(both see) = c min(p_l, p_r) + (1 - c) p_l p_r '
+                                     '(iCub: 0.38 over uniform configurations, tools.detector_bench; 0.59 over the attempts AL makes, '
+                                     'tools.visibility_attempts)', (0.0, 1.0))
 
     def __post_init__(self) -> None:
         if self.occlusion_prior not in OCCLUSION_PRIORS:
@@ -130,7 +142,10 @@ class Planner:
         if self.settings.occlusion_prior == 'geometric':
             if self.model.camera is None:
                 raise ValueError("occlusion_prior 'geometric' needs the robot description's camera intrinsics")
-            self.visibility = VisibilityPrior(self.model.camera)
+            margin, widths = self.visibility_constants
+            self.visibility = VisibilityPrior(self.model.camera, margin=margin,
+                                              marker_side=self.model.marker_side_length if widths > 0 else None,
+                                              margin_marker_widths=widths)
         self.start: NDArray[np.float64] | None = None
         self.movement_deg = 0.0
         #: Poses still to visit before the strategy takes over (a reviewed plan, a taught list).
@@ -141,6 +156,13 @@ class Planner:
         # Fixed (seed 0) so the criterion is the same function in every run and iteration.
         self.box_configs = box[:, 0] + (box[:, 1] - box[:, 0]) * qmc.Sobol(
             box.shape[0], rng=0).random_base2(int(np.log2(self.settings.box_samples)))
+
+    @property
+    def visibility_constants(self) -> tuple[float, float]:
+        """The geometric prior's (margin, marker widths): the settings', or the description's where unset."""
+        s, (margin, widths) = self.settings, self.model.visibility
+        return (margin if s.visibility_margin < -1.0 else s.visibility_margin,
+                widths if s.visibility_marker_widths < 0 else s.visibility_marker_widths)
 
     @property
     def strategy(self) -> Strategy:
@@ -168,7 +190,8 @@ class Planner:
         return self.settings.penalty_a if self.model.body_penalty else 0.0
 
     def cost(self, dh: ArrayLike, P: ArrayLike, camera_pose: ArrayLike) -> AcquisitionCost:  # noqa: N803
-        """The acquisition cost for the current estimate.
+        """The acquisition cost for the current estimate (``camera_pose`` (4, 4), or (2, 4, 4) for a
+        stereo pair).
 
         With the geometric occlusion prior, its weight is the evidence that the current estimate's
         visibility predictions explain the attempts so far (a badly wrong estimate predicts the hand
@@ -184,7 +207,8 @@ class Planner:
                                P, self.noise, np.asarray(camera_pose, dtype=float),
                                self.model.markers, occlusion=self.occlusion, visibility=self.visibility,
                                penalty_a=self.penalty_a, penalty_b=s.penalty_b, occlusion_mode=s.occlusion_mode,
-                               criterion=s.criterion, box_configs=self.box_configs, extrinsics=self.extrinsics)
+                               criterion=s.criterion, box_configs=self.box_configs, extrinsics=self.extrinsics,
+                               eye_correlation=s.eye_correlation)
         if self.visibility is not None:
             tried, _ = self.occlusion.attempts
             cost.visibility_weight = (self.occlusion.geometric_evidence(cost.visibility_probability(tried))

@@ -23,7 +23,8 @@ Subscriptions
 /body_schema/estimate, /body_schema/covariance : std_msgs/Float64MultiArray (transient local); the
     informed strategies select on them, and with ``wait_for_estimator`` every strategy waits for
     the first estimate, which the estimator sends once it hears the arm
-/camera/<eye>/pose : geometry_msgs/PoseStamped (transient local)
+/camera/<eye>/pose : geometry_msgs/PoseStamped (transient local); with ``use_right_eye`` both
+    ``/camera/left/pose`` and ``/camera/right/pose``
 /markers : geometry_msgs/PoseArray
 /diagnostics : diagnostic_msgs/DiagnosticArray, the detector's per-frame verdicts (statuses named
     calibration_interfaces.outcome.DETECTOR_DIAGNOSTIC): a ``bad_input`` frame after settling is
@@ -40,7 +41,7 @@ Publications
 Parameters
 ----------
 Declared from the settings dataclasses of :mod:`active_selector.node_settings` (one default, one
-description and one range each): robot, eye, progress_file, wait_for_recorder, wait_for_estimator, resume,
+description and one range each): robot, eye, use_right_eye, progress_file, wait_for_recorder, wait_for_estimator, resume,
 wait_report_period, camera_prior, marker_prior, collision_check, collision_margin, poses_file
 (SelectorNodeSettings); strategy ('random' | 'al' | 'ucsal' | 'ccsal'), seed, gamma, delta,
 optimizer, algorithm, max_evals, n_candidates, refine_starts, refine_evals, local_algorithm,
@@ -109,6 +110,10 @@ class SelectorNode(Node):
         pdn = declare_settings(self, PoseDependentSettings)
 
         self.model = load_robot(self.settings.robot)
+        #: The cameras the cost plans for: one eye, or the stereo pair the detector fuses.
+        self.eyes = self.settings.planned_eyes(self.model)
+        if self.settings.use_right_eye and len(self.eyes) == 1:
+            self.get_logger().info(f'use_right_eye ignored: robot {self.model.name} has a fixed camera, no eyes')
         noise = noise_settings.build(self.model, pdn)
         # Extrinsics the estimator estimates with the table: their columns enter the cost.
         priors = [parse_std(v, k) for k, v in (('camera_prior', self.settings.camera_prior),
@@ -145,13 +150,12 @@ class SelectorNode(Node):
 
         self.dh: np.ndarray | None = None
         self.P: np.ndarray | None = None
-        self.camera_pose: np.ndarray | None = None
+        self.camera_poses: dict[str, np.ndarray] = {}
         self._last_wait_report = 0.0
         self._held = False                  # the arm held after a stop
         self._warn_once = WarnOnce(self)
         self._warn = WarnThrottled(self)
 
-        camera_pose = f'/camera/{self.settings.eye}/pose'
         self.pub_cmd = self.create_publisher(JointTrajectory, '/arm/command', qos_profile('/arm/command'))
         self.pub_progress = self.create_publisher(String, '/calibration/progress',
                                                   qos_profile('/calibration/progress'))
@@ -160,7 +164,10 @@ class SelectorNode(Node):
         for name, callback in (('/body_schema/estimate', self.on_estimate),
                                ('/body_schema/covariance', self.on_covariance)):
             self.create_subscription(Float64MultiArray, name, callback, qos_profile(name))
-        self.create_subscription(PoseStamped, camera_pose, self.on_camera_pose, qos_profile(camera_pose))
+        for eye in self.eyes:
+            topic = f'/camera/{eye}/pose'
+            self.create_subscription(PoseStamped, topic, lambda m, e=eye: self.on_camera_pose(m, e),
+                                     qos_profile(topic))
         self.create_subscription(PoseArray, '/markers', self.on_markers, qos_profile('/markers'))
         self.create_subscription(DiagnosticArray, '/diagnostics', self.on_diagnostics, qos_profile('/diagnostics'))
         self.create_subscription(DiagnosticStatus, '/body_schema/update_status', self.on_status,
@@ -239,8 +246,7 @@ class SelectorNode(Node):
         if informed:
             if self.P is None:
                 missing.append('/body_schema/covariance')
-            if self.camera_pose is None:
-                missing.append(f'/camera/{self.settings.eye}/pose')
+            missing.extend(f'/camera/{eye}/pose' for eye in self.eyes if eye not in self.camera_poses)
         if self.settings.wait_for_recorder and self.pub_progress.get_subscription_count() == 0:
             missing.append('a subscriber of /calibration/progress (the recorder)')
         return missing
@@ -275,11 +281,20 @@ class SelectorNode(Node):
         except MessageFormatError as exc:
             self._warn('covariance', f'/body_schema/covariance ignored: {exc}')
 
-    def on_camera_pose(self, msg: PoseStamped) -> None:
+    @property
+    def camera_pose(self) -> np.ndarray | None:
+        """The planned-for camera pose (4, 4), or the stereo pair's (2, 4, 4); None until every one arrived."""
+        if any(eye not in self.camera_poses for eye in self.eyes):
+            return None
+        poses = np.stack([self.camera_poses[eye] for eye in self.eyes])
+        return poses[0] if len(poses) == 1 else poses
+
+    def on_camera_pose(self, msg: PoseStamped, eye: str | None = None) -> None:
+        eye = eye or self.eyes[0]
         try:
-            self.camera_pose = pose_msg_to_matrix(msg.pose)
+            self.camera_poses[eye] = pose_msg_to_matrix(msg.pose)
         except ValueError as exc:
-            self._warn('camera_pose', f'camera pose ignored: {exc}')
+            self._warn(f'camera_pose.{eye}', f'{eye} camera pose ignored: {exc}')
 
     def on_markers(self, msg: PoseArray) -> None:
         self._report(self.loop.markers(stamp_to_seconds(msg.header.stamp), len(msg.poses) > 0))

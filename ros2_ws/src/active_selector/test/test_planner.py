@@ -72,6 +72,23 @@ def test_occlusion_prior_setting_reaches_the_cost():
         PlannerSettings(occlusion_prior='sharp')
 
 
+def test_visibility_constants_come_from_the_description_unless_set():
+    v = Planner(ARM, PoseDependentNoise()).visibility
+    assert (v.margin, v.margin_marker_widths, v.marker_side) == (0.02, 0.5, ARM.marker_side_length)   # the iCub's
+    fixed = Planner(ARM, PoseDependentNoise(), PlannerSettings(visibility_margin=0.06,
+                                                               visibility_marker_widths=0.0)).visibility
+    assert (fixed.margin, fixed.margin_marker_widths, fixed.marker_side) == (0.06, 0.0, None)
+    ur5e = body_schema.load_robot('ur5e')
+    assert Planner(ur5e, PoseDependentNoise()).visibility_constants == (0.06, 0.0)
+
+
+def test_eye_correlation_reaches_a_stereo_cost():
+    planner = Planner(ARM, PoseDependentNoise(), PlannerSettings(eye_correlation=0.3))
+    pair = np.stack([ARM.camera_pose('left'), ARM.camera_pose('right')])
+    cost = planner.cost(ARM.dh, sampling.initial_covariance(7), pair)
+    assert cost.eye_correlation == 0.3 and cost.terms_batch(ARM.calibration_box.mean(1)[None])[0].shape == (1,)
+
+
 def test_geometric_prior_loses_weight_when_its_predictions_fail():
     pl = Planner(ARM, PoseDependentNoise(), PlannerSettings(occlusion_prior='geometric'))
     pl.start = np.mean(ARM.calibration_box, axis=1)
@@ -165,3 +182,15 @@ def test_the_body_penalty_applies_only_where_the_description_has_a_body():
     settings = PlannerSettings(SelectorConfig(strategy='al'), penalty_a=0.05)
     assert Planner(panda, PoseDependentNoise(), settings).cost(panda.dh, P, panda.camera_pose('left')).penalty_a == 0.0
     assert Planner(ARM, PoseDependentNoise(), settings).cost(ARM.dh, P, ARM.camera_pose()).penalty_a == 0.05
+
+
+def test_the_planned_eyes_follow_the_description_and_the_extrinsics():
+    from active_selector.node_settings import SelectorNodeSettings
+
+    assert SelectorNodeSettings(use_right_eye=True).planned_eyes(ARM) == ('left', 'right')
+    assert SelectorNodeSettings(use_right_eye=False, eye='right').planned_eyes(ARM) == ('right',)
+    assert SelectorNodeSettings(use_right_eye=True).planned_eyes(body_schema.load_robot('ur5e')) == ('left',)
+    # A "0" prior estimates nothing; a real one is one camera's correction.
+    assert SelectorNodeSettings(use_right_eye=True, camera_prior='0').planned_eyes(ARM) == ('left', 'right')
+    with pytest.raises(ValueError, match='use_right_eye cannot be combined with camera_prior'):
+        SelectorNodeSettings(use_right_eye=True, marker_prior='0.005 5').planned_eyes(ARM)

@@ -127,6 +127,42 @@ def test_random_waits_for_the_estimator_when_asked(ros):
     probe.target()                                          # the first command follows
 
 
+def test_stereo_plans_with_both_eyes_once_both_poses_arrived(ros):
+    """use_right_eye: the node waits for both eyes' poses, then plans with the pair (2, 4, 4)."""
+    from std_msgs.msg import Float64MultiArray
+
+    from body_schema.sampling import initial_covariance
+    from calibration_interfaces.messages import covariance_to_msg, matrix_to_pose_msg, table_to_msg
+
+    probe = Probe(ros, strategy='al', use_right_eye=True, n_candidates=64, refine_starts=1)
+    node = probe.node
+    est = ros.node('estimator')
+    for name, msg in (('/body_schema/estimate', table_to_msg(ARM.dh)),
+                      ('/body_schema/covariance', covariance_to_msg(initial_covariance(ARM.n_joints)))):
+        est.create_publisher(Float64MultiArray, name, qos_profile(name)).publish(msg)
+    right = est.create_publisher(PoseStamped, '/camera/right/pose', qos_profile('/camera/right/pose'))
+    poses = {}
+    for eye, pub in (('left', probe.cam), ('right', right)):
+        poses[eye] = PoseStamped(pose=matrix_to_pose_msg(ARM.camera_pose(eye)))
+        poses[eye].header.frame_id = 'root_link'
+    probe.cam.publish(poses['left'])
+    q = np.mean(ARM.calibration_box, axis=1)
+    ros.spin_until(lambda: probe.joints(q) or node.q is not None and 'left' in node.camera_poses
+                   and node.P is not None, 10.0, 'joints, left pose and the estimate')
+    ros.spin_for(0.3)
+    assert node.waiting_for == ['/camera/right/pose'] and node.camera_pose is None and probe.commands == []
+    right.publish(poses['right'])
+    probe.target()
+    np.testing.assert_allclose(node.camera_pose, np.stack([ARM.camera_pose('left'), ARM.camera_pose('right')]),
+                               atol=1e-12)
+
+
+def test_stereo_is_ignored_for_a_fixed_camera(ros):
+    node = ros.add(SelectorNode(context=ros.context, parameter_overrides=[
+        Parameter('robot', value='ur5e'), Parameter('use_right_eye', value=True)]))
+    assert node.eyes == ('left',)
+
+
 def test_an_empty_frame_after_settling_fails_the_iteration(ros, tmp_path):
     probe = Probe(ros, strategy='random', iterations=2, seed=3, progress_file=str(tmp_path / 'p.jsonl'))
     target = probe.target()

@@ -37,6 +37,11 @@ its prior mean at each candidate is the geometric prediction from the current es
 facing the camera inside the image), widened by the predicted hand-pose covariance ``H P H^T``
 already computed for the gain, instead of the paper's flat ``a0 / (a0 + b0)``.
 
+Two cameras (the iCub's eyes, whose detections the detector fuses): the cost takes both poses;
+``eta``'s prior is the probability that either eye sees the hand, and ``g`` the expected gain of
+the detection the attempt gives when it succeeds: fused when both eyes see the hand, one eye's
+when only it does (:meth:`AcquisitionCost.terms_batch`).
+
 Strategies:
 
 * ``random`` (R): uniform in the calibration box.
@@ -244,8 +249,9 @@ class AcquisitionCost:
         Current estimate covariance.
     noise : NoiseModel
         Predicts ``R(theta)`` from the expected hand pose.
-    camera_pose : ndarray, shape (4, 4)
-        Camera optical frame in the root frame.
+    camera_pose : ndarray, shape (4, 4) or (2, 4, 4)
+        Camera optical frame in the root frame; two stacked for a stereo pair whose detections are
+        fused (an attempt succeeds when either camera sees the hand; see :meth:`terms_batch`).
     markers : sequence of MarkerPlacement
     occlusion : OcclusionModel, optional
         ``eta(theta)``; ``None`` means ``eta = 1`` (or the visibility prior alone, if given).
@@ -268,6 +274,11 @@ class AcquisitionCost:
         ``(4 L + e)`` square (table first), the observation Jacobian includes their columns (at zero
         correction) and only the table's uncertainty is scored, so a configuration whose
         information would go to the camera pose is not mistaken for one that calibrates the arm.
+        One camera only.
+    eye_correlation : float
+        With two cameras, how the visibility of one follows the other's, in [0, 1]: the
+        probability both see the hand is ``c min(p_1, p_2) + (1 - c) p_1 p_2`` (0: independent, 1:
+        the camera that sees less sees only when the other does).
     """
 
     base: NDArray[np.float64]
@@ -286,13 +297,22 @@ class AcquisitionCost:
     box_configs: NDArray[np.float64] | None = None
     noise_scales: tuple[float, float] = DETECTOR_NOISE_SCALES
     extrinsics: Extrinsics | None = None
+    eye_correlation: float = 0.6
     weight: NDArray[np.float64] | None = field(init=False, repr=False)
     uncertainty: float = field(init=False, repr=False)
     _marker_frames: NDArray[np.float64] = field(init=False, repr=False)
+    _cameras: NDArray[np.float64] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         self.dh = np.asarray(self.dh, dtype=float)
         self.P = np.asarray(self.P, dtype=float)
+        self._cameras = np.asarray(self.camera_pose, dtype=float).reshape(-1, 4, 4)
+        if not 1 <= len(self._cameras) <= 2 or np.shape(self.camera_pose)[-2:] != (4, 4):
+            raise ValueError(f'camera_pose must have shape (4, 4) or (2, 4, 4), got {np.shape(self.camera_pose)}')
+        if len(self._cameras) == 2 and self.extrinsics is not None:
+            raise ValueError('extrinsics are estimated for one camera; got a stereo pair of camera poses')
+        if not 0.0 <= self.eye_correlation <= 1.0:
+            raise ValueError(f'eye_correlation must be in [0, 1], got {self.eye_correlation}')
         n_extra = 0 if self.extrinsics is None else self.extrinsics.n
         n = self.dh.size + n_extra
         if self.P.shape != (n, n):
@@ -331,6 +351,12 @@ class AcquisitionCost:
                                                       NDArray[np.float64]]:
         """Gain, success probability and hand x for a batch of configurations.
 
+        With two cameras, ``gain`` is the expected gain given that the attempt succeeds: over the
+        outcomes "both cameras see the hand" (their detections fused: ``R = (R_1^-1 + R_2^-1)^-1``)
+        and "only camera k does" (``R_k``), weighted by the cameras' geometric visibilities
+        (:attr:`eye_correlation`) or, without a visibility prior, assuming both see it; the
+        visibility prior is then the probability that either camera sees the hand.
+
         Parameters
         ----------
         thetas : array_like, shape (N, L)
@@ -342,13 +368,16 @@ class AcquisitionCost:
         frames = kinematics.chain_frames(self.base, self.dh, np.atleast_2d(thetas))   # (N, L+1, 4, 4)
         hand = frames[:, -1]
         H = self._jacobian(frames)                                               # (N, 6, n)  # noqa: N806
-        # One pose goes through the noise model's single-pose path (3x cheaper; the local search).
-        R = self.noise.hand_covariance(self.camera_pose, hand[0] if len(hand) == 1 else hand,  # noqa: N806
-                                       self.markers).reshape(-1, 6, 6)
         hp = H @ self.P
         hph = hp @ np.swapaxes(H, -1, -2)                                        # predicted pose covariance
-        gain = information_gain(hp, hph + R, self.weight)
-        prior = None if self.visibility is None else self._visibility(hand, hph)
+        if len(self._cameras) == 1:
+            # One pose goes through the noise model's single-pose path (3x cheaper; the local search).
+            R = self.noise.hand_covariance(self._cameras[0], hand[0] if len(hand) == 1 else hand,  # noqa: N806
+                                           self.markers).reshape(-1, 6, 6)
+            gain = information_gain(hp, hph + R, self.weight)
+            prior = None if self.visibility is None else self._visibility(hand, hph)
+        else:
+            gain, prior = self._stereo_terms(hand, hp, hph)
         if self.occlusion is not None:
             if prior is not None and self.visibility_weight < 1.0:
                 flat = self.occlusion.a0 / (self.occlusion.a0 + self.occlusion.b0)
@@ -358,16 +387,46 @@ class AcquisitionCost:
             eta = np.ones(hand.shape[0]) if prior is None else prior
         return gain, eta, hand[:, 0, 3]
 
+    def _pair_outcomes(self, hand: NDArray[np.float64], hph: NDArray[np.float64]
+                       ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """Probabilities (N,) that both cameras, only the first, only the second see the hand."""
+        p1, p2 = (self._visibility(hand, hph, cam) for cam in self._cameras)
+        c = self.eye_correlation
+        both = c * np.minimum(p1, p2) + (1.0 - c) * p1 * p2
+        return both, p1 - both, p2 - both
+
+    def _pair_covariances(self, hand: NDArray[np.float64]) -> list[NDArray[np.float64]]:
+        """``R`` (N, 6, 6) of the outcomes both, first only, second only."""
+        r1, r2 = (self.noise.hand_covariance(cam, hand, self.markers).reshape(-1, 6, 6) for cam in self._cameras)
+        fused = np.linalg.inv(np.linalg.inv(r1) + np.linalg.inv(r2))
+        return [0.5 * (fused + np.swapaxes(fused, -1, -2)), r1, r2]
+
+    def _stereo_terms(self, hand: NDArray[np.float64], hp: NDArray[np.float64],
+                      hph: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+        """Expected gain given success and the probability of success (None without a visibility prior)."""
+        covariances = self._pair_covariances(hand)
+        if self.visibility is None:
+            return information_gain(hp, hph + covariances[0], self.weight), None
+        outcomes = self._pair_outcomes(hand, hph)
+        seen = sum(outcomes)
+        gain = sum(w * information_gain(hp, hph + r, self.weight) for w, r in zip(outcomes, covariances))
+        return gain / np.maximum(seen, 1e-12), seen
+
     def _jacobian(self, frames: NDArray[np.float64]) -> NDArray[np.float64]:
         """Observation Jacobian (N, 6, n) at the chain ``frames`` (N, L + 1, 4, 4)."""
         if self.extrinsics is None:
             return kinematics.pose_jacobian_from_frames(frames)
         return self.extrinsics.predict(frames, np.zeros(self.extrinsics.n))[1]
 
-    def _visibility(self, hand: NDArray[np.float64], hph: NDArray[np.float64]) -> NDArray[np.float64]:
-        """Geometric detection probability (N,) of hands (N, 4, 4) with predicted pose covariances (N, 6, 6)."""
+    def _visibility(self, hand: NDArray[np.float64], hph: NDArray[np.float64],
+                    camera: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
+        """Geometric detection probability (N,) of hands (N, 4, 4) with predicted pose covariances
+        (N, 6, 6) by ``camera`` (4, 4); by either camera of a pair when it is None."""
+        if camera is None and len(self._cameras) == 2:
+            return sum(self._pair_outcomes(hand, hph))
         var = np.diagonal(hph, axis1=-2, axis2=-1)
-        return self.visibility.probability(self.camera_pose, hand[:, None] @ self._marker_frames,
+        return self.visibility.probability(self._cameras[0] if camera is None else camera,
+                                           hand[:, None] @ self._marker_frames,
                                            np.sqrt(var[:, :3].mean(axis=-1)),
                                            np.degrees(np.sqrt(var[:, 3:].mean(axis=-1))))
 
@@ -387,10 +446,19 @@ class AcquisitionCost:
 
     def posterior(self, theta: ArrayLike) -> NDArray[np.float64]:
         """The covariance after one observation at ``theta`` (L,): ``P - B^T S^-1 B`` with
-        ``B = H P``, ``S = H P H^T + R`` (it does not depend on what is measured), shape like ``P``."""
+        ``B = H P``, ``S = H P H^T + R`` (it does not depend on what is measured), shape like ``P``.
+        With two cameras ``R`` is that of the likeliest outcome (both, or one camera alone)."""
         frames = kinematics.chain_frames(self.base, self.dh, np.asarray(theta, dtype=float)[None])
         H = self._jacobian(frames)[0]                                            # noqa: N806
-        R = self.noise.hand_covariance(self.camera_pose, frames[0, -1], self.markers).reshape(6, 6)  # noqa: N806
+        if len(self._cameras) == 1:
+            R = self.noise.hand_covariance(self._cameras[0], frames[0, -1], self.markers).reshape(6, 6)  # noqa: N806
+        else:
+            covariances = self._pair_covariances(frames[:, -1])
+            likeliest = 0
+            if self.visibility is not None:
+                hph = H @ self.P @ H.T
+                likeliest = int(np.argmax([o[0] for o in self._pair_outcomes(frames[:, -1], hph[None])]))
+            R = covariances[likeliest][0]                                        # noqa: N806
         hp = H @ self.P
         post = self.P - hp.T @ np.linalg.solve(hp @ H.T + R, hp)
         return 0.5 * (post + post.T)

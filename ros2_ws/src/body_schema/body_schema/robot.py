@@ -271,6 +271,12 @@ class ArmModel:
         means nothing (a camera in front at +x makes it a reward for hands turned away from the
         camera). Default: on for a description with ``eyes`` (a body carrying its cameras), off
         for fixed cameras.
+    visibility : tuple of 2 floats
+        The geometric visibility prior's margin [fraction of the image width] and marker widths
+        (:class:`body_schema.occlusion.VisibilityPrior` ``margin``, ``margin_marker_widths``;
+        ``selection: {visibility_margin: ..., visibility_marker_widths: ...}`` in the YAML), the
+        selector's values unless its parameters say otherwise. Default ``(0.06, 0.0)``: a fixed
+        margin, as fitted to uniform configurations.
     """
 
     name: str
@@ -301,6 +307,7 @@ class ArmModel:
     mdh_first: tuple[float, float] = (0.0, 0.0)
     urdf: UrdfSource | None = None
     body_penalty: bool = False
+    visibility: tuple[float, float] = (0.06, 0.0)
 
     @property
     def n_joints(self) -> int:
@@ -586,8 +593,7 @@ def robot_from_dict(data: dict[str, Any], source: str = '<dict>', *, propose_box
     known = {'name', 'root_frame', 'angle_unit', 'H0', 'torso', 'joints', 'calibration_box',
              'eyes', 'camera', 'hand_markers', 'fixed_cameras', 'scenery', 'noise_model',
              'obstacles', 'collision', 'exports', 'urdf', 'convention', 'flange', 'selection'}
-    body_penalty = (_selection(data['selection'], where + 'selection') if 'selection' in data
-                    else eyes is not None)
+    body_penalty, visibility = _selection(data.get('selection', {}), where + 'selection', eyes is not None)
     model = ArmModel(
         name=str(data.get('name', Path(source).stem)),
         joint_names=tuple(names),
@@ -617,6 +623,7 @@ def robot_from_dict(data: dict[str, Any], source: str = '<dict>', *, propose_box
         mdh_first=arm['first'],
         urdf=arm['urdf'],
         body_penalty=body_penalty,
+        visibility=visibility,
     )
     if propose_box and 'calibration_box' not in data and camera is not None and markers:
         from .box_proposal import proposed_box     # here: scipy and the collision check only when proposing
@@ -877,14 +884,24 @@ def _obstacles(items: Any, where: str, scale: float) -> tuple[Obstacle, ...]:
     return tuple(out)
 
 
-def _selection(sel: Any, where: str) -> bool:
-    """The ``selection:`` block: ``body_penalty`` (true or false) -> whether the penalty applies."""
-    if not isinstance(sel, dict) or set(sel) != {'body_penalty'}:
-        raise RobotDescriptionError(f'{where}: must be a mapping with body_penalty (true or false), got {sel!r}')
-    value = sel['body_penalty']
-    if not isinstance(value, bool):
-        raise RobotDescriptionError(f'{where}.body_penalty: must be true or false, got {value!r}')
-    return value
+_SELECTION_KEYS = ('body_penalty', 'visibility_margin', 'visibility_marker_widths')
+
+
+def _selection(sel: Any, where: str, has_eyes: bool) -> tuple[bool, tuple[float, float]]:
+    """The ``selection:`` block -> (whether the body penalty applies, the visibility prior's
+    (margin, marker widths)); each key optional."""
+    if not isinstance(sel, dict) or not set(sel) <= set(_SELECTION_KEYS):
+        raise RobotDescriptionError(f'{where}: must be a mapping with any of {list(_SELECTION_KEYS)}, got {sel!r}')
+    penalty = sel.get('body_penalty', has_eyes)
+    if not isinstance(penalty, bool):
+        raise RobotDescriptionError(f'{where}.body_penalty: must be true or false, got {penalty!r}')
+    visibility = []
+    for key, default, low in (('visibility_margin', 0.06, -1.0), ('visibility_marker_widths', 0.0, 0.0)):
+        value = sel.get(key, default)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not low <= value <= 10.0:
+            raise RobotDescriptionError(f'{where}.{key}: must be a number in [{low:g}, 10], got {value!r}')
+        visibility.append(float(value))
+    return penalty, (visibility[0], visibility[1])
 
 
 def _collision(c: Any, where: str, names: tuple[str, ...]) -> CollisionSettings:

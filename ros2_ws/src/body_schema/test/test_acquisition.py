@@ -133,6 +133,8 @@ from scipy.stats import qmc  # noqa: E402
 from body_schema import kinematics  # noqa: E402
 from body_schema.acquisition import (CRITERIA, DETECTOR_NOISE_SCALES, OCCLUSION_MODES,  # noqa: E402
                                      box_pose_weight, information_gain)
+from body_schema.extrinsics import Extrinsics  # noqa: E402
+import scipy.linalg  # noqa: E402
 
 
 @pytest.fixture(scope='module')
@@ -352,3 +354,69 @@ def test_search_names_the_optimizer_that_runs():
     once made the acquisition benchmark compare the batch optimiser with itself)."""
     assert SelectorConfig(optimizer='direct', max_evals=300).search == 'DIRECT_L, 300 evaluations'
     assert SelectorConfig(optimizer='batch').search.startswith('batch: 512 candidates + BOBYQA')
+
+
+# ------------------------------------------------------------------ a stereo pair of cameras
+
+def _stereo(arm, box_configs, **kw):
+    mono = replace(_cost(arm, box_configs, None, 'gain', 'v_optimal'), **kw)
+    pair = np.stack([arm.camera_pose('left'), arm.camera_pose('right')])
+    return mono, replace(mono, camera_pose=pair)
+
+
+def test_stereo_without_visibility_prior_gains_what_the_fused_detection_teaches(arm, box_configs):
+    mono, stereo = _stereo(arm, box_configs)
+    right = replace(mono, camera_pose=arm.camera_pose('right'))
+    qs = sampling.uniform_configs(arm.calibration_box, 32, 7)
+    gain, eta, _ = stereo.terms_batch(qs)
+    np.testing.assert_array_equal(eta, 1.0)                # no prior: both eyes assumed to see it
+    hands = kinematics.forward_kinematics(arm.base, stereo.dh, qs)
+    r1, r2 = (PoseDependentNoise().hand_covariance(c, hands, arm.markers) for c in stereo.camera_pose)
+    fused = np.linalg.inv(np.linalg.inv(r1) + np.linalg.inv(r2))
+    frames = kinematics.chain_frames(arm.base, stereo.dh, qs)
+    hp = kinematics.pose_jacobian_from_frames(frames) @ stereo.P
+    expected = information_gain(hp, hp @ np.swapaxes(kinematics.pose_jacobian_from_frames(frames), -1, -2) + fused,
+                                stereo.weight)
+    np.testing.assert_allclose(gain, expected, rtol=1e-10)
+    # Two eyes teach more than either alone, and the update's covariance is the fused one's.
+    assert np.all(gain > mono.terms_batch(qs)[0]) and np.all(gain > right.terms_batch(qs)[0])
+    np.testing.assert_allclose(stereo.evaluate(qs), [stereo(q) for q in qs], rtol=1e-12, atol=1e-15)
+    H = kinematics.pose_jacobian_from_frames(frames[:1])[0]
+    S = H @ stereo.P @ H.T + fused[0]
+    np.testing.assert_allclose(stereo.posterior(qs[0]),
+                               stereo.P - stereo.P @ H.T @ np.linalg.solve(S, H @ stereo.P), rtol=1e-8, atol=1e-14)
+
+
+def test_stereo_visibility_is_either_eye_by_the_correlation(arm, box_configs):
+    prior = VisibilityPrior(arm.camera)
+    mono, _ = _stereo(arm, box_configs, visibility=prior)
+    left = arm.camera_pose('left')
+    qs = sampling.uniform_configs(arm.calibration_box, 64, 3)
+    p = mono.visibility_probability(qs)
+    assert 0.1 < p.mean() < 0.9
+    twin = np.stack([left, left])                          # the same camera twice: p1 = p2 = p
+    np.testing.assert_allclose(replace(mono, camera_pose=twin, eye_correlation=1.0).visibility_probability(qs), p,
+                               rtol=1e-12)
+    np.testing.assert_allclose(replace(mono, camera_pose=twin, eye_correlation=0.0).visibility_probability(qs),
+                               1 - (1 - p) ** 2, rtol=1e-12)
+    # The gain given success weighs the outcomes: with the same camera twice and nested visibility
+    # the hand is seen by both or by neither, so the gain is the fused detection's.
+    nested = replace(mono, camera_pose=twin, eye_correlation=1.0)
+    fused = replace(mono, camera_pose=twin, visibility=None)
+    np.testing.assert_allclose(nested.terms_batch(qs)[0], fused.terms_batch(qs)[0], rtol=1e-10)
+    independent = replace(nested, eye_correlation=0.0)
+    gain_mono = mono.terms_batch(qs)[0]
+    g = independent.terms_batch(qs)[0]
+    assert np.all(g > gain_mono - 1e-12) and np.all(g < fused.terms_batch(qs)[0] + 1e-12)
+
+
+def test_stereo_cost_refuses_what_it_cannot_model(arm, box_configs):
+    mono, stereo = _stereo(arm, box_configs)
+    with pytest.raises(ValueError, match=r'camera_pose must have shape.*\(3, 4, 4\)'):
+        replace(mono, camera_pose=np.stack([arm.camera_pose('left')] * 3))
+    with pytest.raises(ValueError, match='eye_correlation.*1.5'):
+        replace(stereo, eye_correlation=1.5)
+    extrinsics = Extrinsics(arm.camera_pose('left'), arm.markers[0].hand_T_marker, (0.01, 0.01), None)
+    with pytest.raises(ValueError, match='one camera'):
+        AcquisitionCost(arm.base, stereo.dh, scipy.linalg.block_diag(stereo.P, np.eye(extrinsics.n) * 1e-4),
+                        PoseDependentNoise(), stereo.camera_pose, arm.markers, extrinsics=extrinsics)

@@ -111,6 +111,30 @@ def test_an_uncertain_estimate_softens_the_prediction(prior):
     assert prior.probability(cam, turned[None]) < prior.probability(cam, turned[None], orientation_std_deg=30.0)
 
 
+def test_a_near_marker_must_lie_further_inside_with_marker_widths():
+    """``margin_marker_widths``: the margin grows with the marker's projected width, so the half-way
+    point moves in by that many widths (a near marker's corners leave the image first)."""
+    cam, side, z, k = np.eye(4), 0.03, 0.2, 0.5
+    sized = VisibilityPrior(CAM, margin=0.02, marker_side=side, margin_marker_widths=k)
+    # Where the marker's distance from the border is the margin plus k head-on widths (fx side / r).
+    from scipy.optimize import brentq
+
+    x_half = brentq(lambda x: (CAM.width - (CAM.fx * x / z + CAM.cx)) - 0.02 * CAM.width
+                    - k * CAM.fx * side / np.hypot(x, z), 0.0, 0.15)
+    mid = sized.probability(cam, _marker_at(x_half, 0.0, z)[None])
+    assert mid == pytest.approx(sized.floor + 0.5 * (sized.ceiling - sized.floor), abs=1e-6)
+    # Without the widths, the same marker lies well inside the margin; far away the two agree.
+    assert VisibilityPrior(CAM, margin=0.02, marker_side=side).probability(cam, _marker_at(x_half, 0.0, z)[None]) \
+        > sized.ceiling - 0.01
+    far = _marker_at(0.8, 0.0, 2.0)[None]
+    assert sized.probability(cam, far) == pytest.approx(
+        VisibilityPrior(CAM, margin=0.02, marker_side=side).probability(cam, far), abs=0.02)
+    with pytest.raises(ValueError, match='margin_marker_widths needs marker_side'):
+        VisibilityPrior(CAM, margin_marker_widths=0.5)
+    with pytest.raises(ValueError, match='margin_marker_widths must be finite and >= 0, got -1'):
+        VisibilityPrior(CAM, marker_side=side, margin_marker_widths=-1.0)
+
+
 @pytest.mark.parametrize('field, value', [('max_view_angle_deg', 0.0), ('margin_softness', -1.0),
                                           ('margin', float('nan')), ('floor', 0.0), ('ceiling', 1.0)])
 def test_bad_visibility_settings_name_the_value(field, value):

@@ -62,7 +62,11 @@ def test_with_dh_builds_another_model():
     (lambda d: d.__setitem__('selection', {'body_penalty': 'yes'}),
      r"selection\.body_penalty: must be true or false, got 'yes'"),
     (lambda d: d.__setitem__('selection', {'body_penalty': True, 'penalty': 0.1}),
-     r'selection: must be a mapping with body_penalty'),
+     r"selection: must be a mapping with any of \['body_penalty', 'visibility_margin'"),
+    (lambda d: d.__setitem__('selection', {'visibility_marker_widths': -0.5}),
+     r'selection\.visibility_marker_widths: must be a number in \[0, 10\], got -0.5'),
+    (lambda d: d.__setitem__('selection', {'visibility_margin': 'wide'}),
+     r"selection\.visibility_margin: must be a number in \[-1, 10\], got 'wide'"),
 ])
 def test_bad_descriptions_name_the_field(tmp_path, raw, mutate, message):
     data = copy.deepcopy(raw)
@@ -217,3 +221,12 @@ def test_the_body_penalty_is_on_for_a_body_with_eyes_and_off_for_fixed_cameras(t
     ur = yaml.safe_load(robot_path('ur5e').read_text())
     ur.pop('selection')
     assert not body_schema.load_robot(_write(tmp_path, ur)).body_penalty
+
+
+def test_the_visibility_constants_come_from_the_selection_block(tmp_path, raw):
+    assert body_schema.load_robot('icub_right_arm').visibility == (0.02, 0.5)     # the whole marker in view
+    assert body_schema.load_robot('ur5e').visibility == (0.06, 0.0)               # the fitted fixed margin
+    data = copy.deepcopy(raw)
+    data['selection'] = {'visibility_marker_widths': 1}
+    model = body_schema.load_robot(_write(tmp_path, data))
+    assert model.visibility == (0.06, 1.0) and model.body_penalty == (model.eyes is not None)

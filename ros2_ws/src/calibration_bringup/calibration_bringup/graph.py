@@ -27,8 +27,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Callable, Iterator, Mapping
 
-__all__ = ['NODES', 'PARAMS_FILES', 'GraphTimeout', 'config_dir', 'default_parameters', 'merge_parameters', 'recorder_available',
-           'ros_session', 'CallbackTimer', 'InProcessGraph']
+__all__ = ['NODES', 'PARAMS_FILES', 'GraphTimeout', 'config_dir', 'default_parameters', 'merge_parameters',
+           'with_detector_eyes', 'recorder_available', 'ros_session', 'CallbackTimer', 'InProcessGraph']
 
 #: The graph's nodes, in creation order (the recorder, if any, comes last).
 NODES = ('sim', 'detector', 'estimator', 'selector')
@@ -77,6 +77,19 @@ def default_parameters() -> dict[str, dict[str, Any]]:
                                     'detector': dict(sim_time),
                                     'estimator': {**sim_time, 'export_on_shutdown': False},
                                     'selector': dict(sim_time)})
+
+
+def with_detector_eyes(params: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """``params`` with the simulator rendering every eye the detector reads: the in-process graph
+    renders the left eye only unless the detector's ``use_right_eye`` asks for the right one too
+    (on a robot with eyes: a fixed camera has no right eye, and the detector ignores it there)."""
+    from body_schema import load_robot
+
+    cameras = list(params.get('sim', {}).get('cameras', []))
+    if params.get('detector', {}).get('use_right_eye') and cameras and 'right' not in cameras:
+        if load_robot(params['sim'].get('robot', 'icub_right_arm')).eyes is not None:
+            params['sim']['cameras'] = [*cameras, 'right']
+    return params
 
 
 def merge_parameters(*layers: Mapping[str, Mapping[str, Any]]) -> dict[str, dict[str, Any]]:
@@ -230,7 +243,7 @@ class InProcessGraph:
         from marker_detector.detector_node import DetectorNode
 
         self.context, self.executor = context, executor
-        self.parameters = merge_parameters(default_parameters(), parameters or {})
+        self.parameters = with_detector_eyes(merge_parameters(default_parameters(), parameters or {}))
         unknown = set(self.parameters) - set(NODES)
         if unknown:
             raise ValueError(f'parameters for unknown nodes {sorted(unknown)}; the graph has {list(NODES)}')

@@ -122,7 +122,9 @@ def make_plan(robot: str, n: int, seed: int = 1, *, strategy: str | None = None,
     planner.start = (np.radians(np.asarray(start_deg, dtype=float)) if start_deg is not None
                      else model.calibration_box.mean(axis=1))
     t0 = time.perf_counter()
-    selections = planner.plan(estimator.dh, estimator.P, model.camera_pose(node_settings.eye), n)
+    # The camera pose, or the stereo pair's, the selector node would plan with.
+    cameras = np.stack([model.camera_pose(eye) for eye in node_settings.planned_eyes(model)])
+    selections = planner.plan(estimator.dh, estimator.P, cameras[0] if len(cameras) == 1 else cameras, n)
     return Plan(model, planner.start, selections, collision, time.perf_counter() - t0)
 
 

@@ -10,7 +10,7 @@ import pytest
 from std_msgs.msg import String
 
 from calibration_bringup.graph import (PARAMS_FILES, CallbackTimer, InProcessGraph, config_dir, default_parameters,
-                                       merge_parameters, ros_session)
+                                       merge_parameters, ros_session, with_detector_eyes)
 from calibration_interfaces.parameters import read_params_file
 
 
@@ -33,6 +33,19 @@ def test_the_graph_runs_with_the_parameter_files_of_the_launcher() -> None:
     assert params['sim']['real_time_factor'] == 0.0 and params['sim']['cameras'] == ['left']
     assert all(params[k]['use_sim_time'] for k in ('detector', 'estimator', 'selector'))
     assert params['estimator']['export_on_shutdown'] is False
+
+
+def test_the_simulator_renders_the_eyes_the_detector_reads() -> None:
+    left = {'sim': {'cameras': ['left']}, 'detector': {'use_right_eye': False}}
+    assert with_detector_eyes(merge_parameters(left))['sim']['cameras'] == ['left']
+    stereo = merge_parameters(left, {'detector': {'use_right_eye': True}})
+    assert with_detector_eyes(stereo)['sim']['cameras'] == ['left', 'right']
+    # A fixed camera's description (no cameras listed: the description's own) is left alone, and
+    # a robot without eyes renders its one camera.
+    fixed = {'sim': {'cameras': []}, 'detector': {'use_right_eye': True}}
+    assert with_detector_eyes(fixed)['sim']['cameras'] == []
+    ur5e = {'sim': {'cameras': ['left'], 'robot': 'ur5e'}, 'detector': {'use_right_eye': True}}
+    assert with_detector_eyes(ur5e)['sim']['cameras'] == ['left']
 
 
 def test_parameters_for_a_node_the_graph_lacks_are_refused(ros) -> None:

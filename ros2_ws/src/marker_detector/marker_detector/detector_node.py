@@ -85,7 +85,8 @@ class DetectorNodeSettings:
     """The detector node's own parameters (the rest: noise settings and DetectorConfig)."""
 
     robot: str = setting('icub_right_arm', 'Packaged robot name or path of a robot YAML')
-    use_right_eye: bool = setting(False, 'Also process the right eye and fuse the pair')
+    use_right_eye: bool = setting(False, 'Also process the right eye and fuse the pair (a robot with eyes; '
+                                  'ignored for a fixed camera)')
     stereo_timeout: float = setting(0.5, 'Seconds one eye waits for the other eye of the same stamp', (0.0, 10.0))
     transport: str = setting('raw', 'Image transport: raw (camera/<eye>/image_raw, sensor_msgs/Image) or compressed '
                              '(camera/<eye>/image_raw/compressed, JPEG or PNG)', choices=IMAGE_TRANSPORTS)
@@ -142,7 +143,10 @@ class DetectorNode(Node):
         self.model = load_robot(s.robot)
         self.estimator = HandPoseEstimator(self.model, self.noise.build(self.model, pdn), config)
         self.root_frame = self.model.root_frame
-        self.stereo = s.use_right_eye
+        # A fixed camera has no right eye: the parameter files' stereo default is the iCub's.
+        self.stereo = s.use_right_eye and self.model.eyes is not None
+        if s.use_right_eye and not self.stereo:
+            self.get_logger().info(f'use_right_eye ignored: robot {self.model.name} has a fixed camera, no eyes')
         self.demosaicing = s.demosaicing
         try:
             self.bayer_gains = check_gains(s.bayer_gains)

@@ -335,6 +335,9 @@ def test_constant_noise_and_invalid_parameters(ros: Any, model) -> None:
     with pytest.raises(ValueError, match=r'bayer_gains must be three positive numbers .*got \[1.0, -1.0, 1.0\]'):
         DetectorNode(context=ros.context, parameter_overrides=[Parameter('bayer_gains', value=[1.0, -1.0, 1.0])])
     assert _detector(ros, demosaicing='mosaic', bayer_gains=[2.2, 1.0, 1.4]).bayer_gains == (2.2, 1.0, 1.4)
+    # A fixed camera has no right eye (its frames would each wait stereo_timeout for one): ignored.
+    fixed = _detector(ros, robot='ur5e', use_right_eye=True)
+    assert not fixed.stereo and list(fixed.eyes) == ['left']
 
 
 def test_stereo_pair_gives_one_fused_outcome(ros: Any, model) -> None:

@@ -35,21 +35,27 @@ def _stereo_rows(left: list[Frame], right: list[Frame], est: HandPoseEstimator) 
     """Left only vs right only vs information-weighted stereo, on configs where both succeed."""
     errs: dict[str, list[tuple[float, float]]] = {'left eye only': [], 'right eye only': [],
                                                   'stereo (weighted)': []}
-    n_any = 0
+    n_any, n_eye = 0, np.zeros(2, dtype=int)
     for fl, fr in zip(left, right):
         hands = []
         for f in (fl, fr):
             gated = [gate_marker(p, est.config) for p in f.poses]
             hands.append(est.combine(gated, f.k, None, f.root_T_cam))
         n_any += any(h is not None for h in hands)
+        n_eye += [h is not None for h in hands]
         if any(h is None for h in hands):
             continue
         for name, h in zip(errs, hands + [fuse_estimates(hands)]):
             d = h.pose[:3, 3] - fl.truth[:3, 3]
             a = Rotation.from_matrix(h.pose[:3, :3] @ fl.truth[:3, :3].T).magnitude()
             errs[name].append((float(np.linalg.norm(d)) * 1e3, float(np.degrees(a))))
+    n = max(len(left), 1)
+    pl, pr, pb = n_eye[0] / n, n_eye[1] / n, len(errs['stereo (weighted)']) / n
+    # The selector's eye_correlation c: P(both) = c min(pl, pr) + (1 - c) pl pr.
+    c = (pb - pl * pr) / (min(pl, pr) - pl * pr) if min(pl, pr) > pl * pr else float('nan')
     rows = [f'Configurations with a hand pose from at least one eye: {n_any}/{len(left)} '
-            f'({100 * n_any / max(len(left), 1):.1f} %); from both eyes: {len(errs["stereo (weighted)"])}.',
+            f'({100 * n_any / n:.1f} %); from the left eye {100 * pl:.1f} %, the right {100 * pr:.1f} %, '
+            f'both {100 * pb:.1f} % (eye correlation {_fmt(c, 2)}: the selector\'s eye_correlation).',
             '', '| estimate (both eyes succeed, 320x240) | median pos [mm] | p95 pos [mm] | '
             'median rot [deg] | p95 rot [deg] |', '|---|---|---|---|---|']
     for name, e in errs.items():

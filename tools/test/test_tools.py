@@ -165,3 +165,70 @@ def test_box_proposal_prints_a_box_and_its_rendered_check(capsys: pytest.Capture
     out = capsys.readouterr().out
     assert re.search(r'^calibration_box: \[\[.*\]\]$', out, re.M)
     assert re.search(r'^# rendered \(left, 4 configurations, seed 1\): a marker detected in [\d.]+%', out, re.M)
+
+
+@pytest.fixture(scope='module')
+def recorded_experiment(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """One recorded AL run of four iterations with the defaults (both eyes), on the real graph."""
+    import io
+    import os
+
+    from calibration_bringup import experiment as ex
+
+    out = tmp_path_factory.mktemp('experiment')
+    config = ex.ExperimentConfig(repetitions=1, iterations=4, methods=('AL',), jobs=1, output=out, seed_base=3,
+                                 domain_base=200 + 2 * (os.getpid() % 7) + 1, figures=False)
+    log = io.StringIO()
+    assert ex.run_experiment(config, stream=log).failures == [], log.getvalue()
+    return out
+
+
+@pytest.mark.slow
+def test_experiment_nees_reruns_each_recorded_run_to_its_online_error(recorded_experiment: Path,
+                                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    from tools import experiment_nees
+
+    assert experiment_nees.main([str(recorded_experiment), '--methods', 'AL', '--repetitions', '1']) == 0
+    (row,) = _rows(capsys.readouterr().out, '| method | runs |')
+    assert row[:3] == ['AL', '1', row[2]] and row[2].endswith('of 1')
+    assert float(row[3]) > 0 and float(row[7]) < 1e-6          # the re-run ends at the online error
+    with pytest.raises(KeyError, match="no settings for method 'CCSAL'"):
+        experiment_nees.run_nees(recorded_experiment, 'CCSAL', [0])
+
+
+@pytest.mark.slow
+def test_visibility_attempts_scores_every_grid_point_on_the_rendered_attempts(
+        recorded_experiment: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from tools import visibility_attempts
+
+    assert visibility_attempts.main([str(recorded_experiment), '--repetitions', '1']) == 0
+    out = capsys.readouterr().out
+    assert re.search(r'^4 attempts of 1 AL runs', out, re.M), out
+    rows = _rows(out, '| margin | marker widths |')
+    assert [(float(r[0]), float(r[1])) for r in rows] == list(visibility_attempts.GRID)
+    assert all(float(r[2]) < 0 for r in rows)
+
+
+@pytest.mark.slow
+def test_experiment_compare_pairs_the_methods_both_ran(recorded_experiment: Path, tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    import csv
+
+    from tools import experiment_compare
+
+    # A copy whose AL ends 0.1 mm lower: the comparison sees it in its one shared repetition.
+    rows = list(csv.DictReader((recorded_experiment / 'metrics.csv').open()))
+    last = max(int(r['iteration']) for r in rows)
+    for r in rows:
+        if int(r['iteration']) == last:
+            r['position_mm'] = str(float(r['position_mm']) - 0.1)
+    (tmp_path / 'metrics.csv').write_text('')
+    with (tmp_path / 'metrics.csv').open('w', newline='') as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    assert experiment_compare.main([str(recorded_experiment), str(tmp_path), '--names', 'a', 'b']) == 0
+    table = {r[1]: r for r in _rows(capsys.readouterr().out, '| method | figure |')}
+    assert table['position [mm]'][0] == 'AL' and table['position [mm]'][5:8] == ['1', '-0.100', '1']
+    assert table['orientation [deg]'][4] == '1.00' and table['orientation [deg]'][6] == '+0.000'
+    assert experiment_compare.main([str(tmp_path / 'nothing'), str(tmp_path)]) == 2

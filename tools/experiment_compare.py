@@ -1,0 +1,63 @@
+"""Compare two experiments method by method on their shared repetitions (paired).
+
+Two ``make experiment`` output directories with the same seed base meet the same real robots and
+initial guesses in each repetition, so their final errors pair up. For every method both ran, this
+prints each experiment's mean and median final position and orientation error and discarded
+attempts, the ratio of the means (second over first), and the paired test of
+:func:`calibration_bringup.experiment_figures.paired_difference` (median difference, how often the
+second is lower, two-sided Wilcoxon p).
+
+Usage (from the repository root)::
+
+    python -m tools.experiment_compare results/one-eye results/experiment-ours --names "one eye" "both eyes"
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from calibration_bringup.experiment_figures import MethodRuns, load_metrics, paired_difference
+
+#: (CSV column, label, digits) compared.
+FIGURES = (('position_mm', 'position [mm]', 3), ('orientation_deg', 'orientation [deg]', 3),
+           ('discarded', 'discarded', 1), ('movement_deg', 'movement [deg]', 0))
+
+
+def compare(first: dict[str, MethodRuns], second: dict[str, MethodRuns], names: Sequence[str]) -> list[str]:
+    """Markdown table rows comparing the methods both experiments ran."""
+    a, b = names
+    lines = [f'| method | figure | {a}: mean (median) | {b}: mean (median) | {b} / {a} | pairs | '
+             f'median difference ({b} - {a}) | {b} lower | p |', '|---|---|---|---|---|---|---|---|---|']
+    for method in [m for m in first if m in second]:
+        for column, label, digits in FIGURES:
+            fa, fb = first[method].final(column), second[method].final(column)
+            # Second minus first: negative favours the second.
+            n, median, second_lower, p = paired_difference(second[method], first[method], column)
+            lines.append(f'| {method} | {label} | {np.mean(fa):.{digits}f} ({np.median(fa):.{digits}f}) | '
+                         f'{np.mean(fb):.{digits}f} ({np.median(fb):.{digits}f}) | {np.mean(fb) / np.mean(fa):.2f} | '
+                         f'{n} | {median:+.{digits}f} | {second_lower} | {p:.2g} |')
+    return lines
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog='python -m tools.experiment_compare', description=__doc__.split('\n\n')[0])
+    ap.add_argument('first', type=Path, help='the baseline experiment directory (its metrics.csv)')
+    ap.add_argument('second', type=Path, help='the experiment compared with it')
+    ap.add_argument('--names', nargs=2, default=None, help='labels of the two [their directory names]')
+    args = ap.parse_args(argv)
+    try:
+        first, second = (load_metrics(d / 'metrics.csv') for d in (args.first, args.second))
+    except (OSError, ValueError) as exc:
+        print(f'experiment_compare: {exc}', file=sys.stderr)
+        return 2
+    names = args.names or [args.first.name, args.second.name]
+    print('\n'.join(compare(first, second, names)))
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

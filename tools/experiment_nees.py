@@ -1,0 +1,106 @@
+"""Consistency of an experiment's runs: the final NEES of each recorded run against its 95 % band.
+
+``make experiment`` records each run's non-image topics (``runs/<method>/repNN.mcap``) but scores
+only the error, which needs the truth and says nothing about whether the estimator's covariance
+is honest. This command re-runs the estimator on each recording with the settings that run
+used (``config.json``: the ``estimator.*`` parameters of its method) through
+:func:`dh_estimator.evaluate.evaluate_bag`, and prints, per run, the final NEES over the
+identifiable parameter combinations, its band, and the re-run's final error next to the online
+one (they agree when the re-run reproduces the run), then how many runs lie inside their band and
+how the innovations after the warm-up compare with the noise law (how many beyond its 99.99 %
+bound, against the 1 in 10,000 a right law gives; the median of the runs' median NIS).
+
+Usage (from the repository root)::
+
+    python -m tools.experiment_nees results/experiment-ours --methods AL --repetitions 20
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+
+def estimator_parameters(config: dict[str, Any], method: str) -> dict[str, Any]:
+    """The estimator node's parameters of ``method``'s runs, from an experiment's ``config.json``.
+
+    Raises
+    ------
+    KeyError
+        Naming the method, if ``config.json`` has no settings for it.
+    """
+    try:
+        settings = config['settings'][method]
+    except KeyError:
+        raise KeyError(f'config.json has no settings for method {method!r}; it has '
+                       f'{sorted(config.get("settings", {}))}') from None
+    # The initial guess comes from the bag ('recorded'), so the seeds are not needed.
+    return {k.split('.', 1)[1]: v for k, v in settings.items() if k.startswith('estimator.')}
+
+
+def run_nees(root: Path, method: str, repetitions: Sequence[int]) -> list[dict[str, Any]]:
+    """NEES and final errors of ``method``'s recorded runs ``repetitions`` under ``root``."""
+    from dh_estimator.evaluate import EvaluationSettings, evaluate_bag
+
+    config = json.loads((root / 'config.json').read_text())
+    settings = EvaluationSettings.from_parameters(estimator_parameters(config, method))
+    out = []
+    for rep in repetitions:
+        bag = root / 'runs' / method / f'rep{rep:02d}.mcap'
+        table = root / 'runs' / method / f'rep{rep:02d}.csv'
+        if not bag.exists() or not table.exists():
+            print(f'{method} rep {rep}: no finished recording ({bag.name}); skipped', file=sys.stderr)
+            continue
+        with table.open(newline='') as f:
+            online = max(csv.DictReader(f), key=lambda r: int(r['iteration']))
+        ev = evaluate_bag(bag, settings)
+        lo, hi = ev.nees_band or (float('nan'), float('nan'))
+        inn = ev.innovations
+        out.append({'method': method, 'repetition': rep, 'nees': ev.nees_identifiable, 'band': (lo, hi),
+                    'in_band': bool(lo <= ev.nees_identifiable <= hi),
+                    'position_mm': ev.rows[-1].position_mm, 'online_position_mm': float(online['position_mm']),
+                    'innovations': 0 if inn is None else inn.count, 'beyond': 0 if inn is None else inn.beyond,
+                    'median_nis': float('nan') if inn is None else inn.median})
+    return out
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog='python -m tools.experiment_nees', description=__doc__.split('\n\n')[0])
+    ap.add_argument('output', type=Path, help='an experiment output directory (config.json, runs/)')
+    ap.add_argument('--methods', nargs='+', default=['AL'])
+    ap.add_argument('--repetitions', type=int, default=20, help='the first N repetitions [20]')
+    args = ap.parse_args(argv)
+    if not (args.output / 'config.json').exists():
+        print(f'{args.output}: no config.json (not an experiment output directory)', file=sys.stderr)
+        return 2
+    first = json.loads((args.output / 'config.json').read_text())['seed_base']
+    print('| method | runs | NEES in its band | NEES median | band (95 %) | innovations beyond the 99.99 % bound '
+          '(expected) | median NIS (5.3) | re-run vs online (max diff mm) |')
+    print('|---|---|---|---|---|---|---|---|')
+    for method in args.methods:
+        rows = run_nees(args.output, method, range(args.repetitions))
+        for r in rows:
+            print(f'  {method} rep {r["repetition"]} (seed {first + r["repetition"]}): NEES {r["nees"]:.1f} '
+                  f'band {r["band"][0]:.1f}-{r["band"][1]:.1f} {"in" if r["in_band"] else "OUT"}; '
+                  f'{r["position_mm"]:.3f} mm (online {r["online_position_mm"]:.3f})', file=sys.stderr)
+        if not rows:
+            continue
+        nees = np.array([r['nees'] for r in rows])
+        diff = max(abs(r['position_mm'] - r['online_position_mm']) for r in rows)
+        band = rows[0]['band']
+        count, beyond = sum(r['innovations'] for r in rows), sum(r['beyond'] for r in rows)
+        medians = [r['median_nis'] for r in rows if np.isfinite(r['median_nis'])]   # none: runs too short
+        median_nis = f'{np.median(medians):.1f}' if medians else 'n/a'
+        print(f'| {method} | {len(rows)} | {sum(r["in_band"] for r in rows)} of {len(rows)} | {np.median(nees):.1f} | '
+              f'{band[0]:.1f}-{band[1]:.1f} | {beyond} of {count} ({count * 1e-4:.2f}) | '
+              f'{median_nis} | {diff:.3f} |')
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())

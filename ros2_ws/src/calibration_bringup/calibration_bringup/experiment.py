@@ -79,7 +79,8 @@ from typing import Any, Iterator, Mapping, Sequence, TextIO
 import numpy as np
 
 from . import cluster
-from .graph import NODES, InProcessGraph, default_parameters, merge_parameters, recorder_available, ros_session
+from .graph import (NODES, InProcessGraph, default_parameters, merge_parameters, recorder_available, ros_session,
+                    with_detector_eyes)
 from .systems import SYSTEMS
 
 __all__ = ['METHODS', 'SYSTEMS', 'COLUMNS', 'Method', 'Seeds', 'RunSpec', 'GraphSettings', 'ExperimentConfig',
@@ -312,7 +313,8 @@ def node_parameters(spec: RunSpec, settings: GraphSettings = GraphSettings(), sy
     method = METHODS[spec.method]
     seeds = spec.seeds
     noise = {'noise_model': 'constant'} if method.constant_noise else {}
-    return merge_parameters(default_parameters(), SYSTEMS[system], overrides or {}, {
+    # with_detector_eyes: the simulator renders the eyes the detector reads, and the settings say so.
+    return with_detector_eyes(merge_parameters(default_parameters(), SYSTEMS[system], overrides or {}, {
         'sim': {'perturb_seed': seeds.robot, 'image_rate': settings.image_rate,
                 'physics_step': settings.physics_step, 'max_joint_speed_deg': settings.max_joint_speed_deg,
                 'image_width': settings.image_width, 'image_height': settings.image_height},
@@ -321,7 +323,7 @@ def node_parameters(spec: RunSpec, settings: GraphSettings = GraphSettings(), sy
         # the parameter file's 30 deg/s of sim time: 25-100 physics steps instead of one or two).
         'selector': {'strategy': method.strategy, 'iterations': spec.iterations, 'seed': seeds.selector,
                      'max_joint_speed_deg': settings.max_joint_speed_deg, **noise},
-    })
+    }))
 
 
 # ------------------------------------------------------------------------------------------

@@ -61,7 +61,8 @@ def test_node_parameters_follow_the_method(method: str) -> None:
         (seeds.robot, seeds.guess, seeds.selector)
     assert p['selector']['strategy'] == m.strategy
     assert p['selector']['iterations'] == 9
-    assert p['sim']['cameras'] == ['left'] and p['sim']['real_time_factor'] == 0.0
+    # Both eyes rendered, as the detector reads both (the parameter files' use_right_eye).
+    assert p['sim']['cameras'] == ['left', 'right'] and p['sim']['real_time_factor'] == 0.0
     # CN: selector and estimator use the constant model; the detector keeps its default.
     expected = 'constant' if m.constant_noise else None
     assert p['selector'].get('noise_model') == expected
@@ -89,10 +90,13 @@ def test_the_paper_system_overrides_estimator_and_selector_only() -> None:
     assert (ours['estimator']['estimator'], ours['selector']['optimizer']) != ('ekf', 'direct')
     changed = {(node, k) for node in ours for k in set(ours[node]) | set(paper[node])
                if ours[node].get(k) != paper[node].get(k)}
-    assert changed <= {(node, k) for node, over in ex.SYSTEMS['paper'].items() for k in over}
+    # The simulator renders the eyes the detector reads: both for ours, the left for the paper's.
+    assert (ours['sim']['cameras'], paper['sim']['cameras']) == (['left', 'right'], ['left'])
+    assert changed - {('sim', 'cameras')} <= {(node, k) for node, over in ex.SYSTEMS['paper'].items() for k in over}
     assert {('estimator', 'estimator'), ('selector', 'optimizer'), ('selector', 'criterion')} <= changed
     # Same robots (the start is the paper's random one).
-    assert {k: v for k, v in paper['sim'].items() if k != 'random_start'} == ours['sim']
+    assert {k: v for k, v in paper['sim'].items() if k not in ('random_start', 'cameras')} == \
+        {k: v for k, v in ours['sim'].items() if k != 'cameras'}
     with pytest.raises(ValueError, match='quantum'):
         ex.ExperimentConfig(system='quantum')
 

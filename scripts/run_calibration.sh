@@ -198,8 +198,8 @@ fi
 invalid=$(python3 -m calibration_interfaces.validate --robot "$robot" ${poses:+--poses "$poses"} 2>&1 >/dev/null) || \
   die "$(tail -n 1 <<<"$invalid")"
 [ "$eyes" != both ] || python3 -c 'import sys; from body_schema import load_robot
-sys.exit(0 if load_robot(sys.argv[1]).eyes is not None else f"run_calibration: --eyes both: robot {sys.argv[1]!r} has a fixed camera, no eyes")' \
-  "$robot" 2>/dev/null || die "--eyes both: robot '$robot' has a fixed camera, no eyes"
+sys.exit(load_robot(sys.argv[1]).eyes is None)' "$robot" 2>/dev/null || \
+  die "--eyes both: robot '$robot' has a fixed camera, no eyes"
 if [ "$plan_only" = 1 ]; then
   # Nothing starts and nothing moves: the poses a run would visit, from the initial guess, for review.
   mkdir -p "$output"

@@ -27,9 +27,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from body_schema import kinematics, load_robot
-from body_schema.noise import PoseDependentNoise
 from body_schema.occlusion import VisibilityPrior
 from body_schema.robot import ArmModel
+
+from .visibility_fit import seen_by_eye
 
 #: (margin, marker widths) scored: the fixed margin fitted to uniform configurations first.
 GRID = ((0.06, 0.0), (0.04, 0.0), (0.0, 0.35), (0.02, 0.35), (0.04, 0.35), (0.0, 0.5), (0.02, 0.5), (0.04, 0.5),
@@ -53,26 +54,6 @@ def attempts(bag: Path, n_joints: int) -> tuple[NDArray[np.float64], NDArray[np.
     if true is None:
         raise ValueError(f'{bag}: no /body_schema/true (the real arm) recorded')
     return true, np.array(reached).reshape(-1, n_joints)
-
-
-def seen_by_eye(model: ArmModel, true_dh: NDArray[np.float64], configs: NDArray[np.float64],
-                eyes: Sequence[str]) -> NDArray[np.bool_]:
-    """Whether the detector finds the hand (K, E) in each eye's rendering of the real arm."""
-    import cv2
-
-    from icub_sim_bridge.world import SimWorld
-    from marker_detector.detection import HandPoseEstimator
-
-    detector = HandPoseEstimator(model, PoseDependentNoise.for_robot(model))
-    seen = np.zeros((len(configs), len(eyes)), dtype=bool)
-    with SimWorld(model, true_dh, head_pose=model.eyes.head_pose) as world:
-        for i, q in enumerate(configs):
-            world.set_joint_positions(q)
-            for j, eye in enumerate(eyes):
-                cam = model.camera_pose(eye)
-                gray = cv2.cvtColor(world.render(cam, model.camera), cv2.COLOR_RGB2GRAY)
-                seen[i, j] = detector.process(gray, model.camera.K, None, cam).success
-    return seen
 
 
 def score(model: ArmModel, marker_poses: NDArray[np.float64], seen: NDArray[np.bool_],

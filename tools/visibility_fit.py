@@ -22,11 +22,12 @@ import numpy as np
 from body_schema import load_robot, kinematics
 from body_schema.noise import PoseDependentNoise
 from body_schema.occlusion import VisibilityPrior
+from body_schema.robot import ArmModel
 from body_schema.sampling import uniform_configs
 
 from .selector_study import true_table
 
-__all__ = ['detections', 'fit', 'main']
+__all__ = ['seen_by_eye', 'detections', 'fit', 'main']
 
 #: Grid of the fit: (max angle deg, angle softness deg, margin, margin softness, ceiling).
 GRID = {'max_view_angle_deg': (55.0, 60.0, 65.0, 70.0, 75.0, 80.0), 'angle_softness_deg': (3.0, 5.0, 8.0, 12.0),
@@ -34,24 +35,32 @@ GRID = {'max_view_angle_deg': (55.0, 60.0, 65.0, 70.0, 75.0, 80.0), 'angle_softn
         'ceiling': (0.85, 0.9, 0.95)}
 
 
-def detections(seed: int, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Marker poses (n, M, 4, 4) under the true table of ``seed`` and whether the detector saw the hand (n,)."""
+def seen_by_eye(model: ArmModel, dh: np.ndarray, configs: np.ndarray,
+                eyes: Sequence[str] = ('left',)) -> np.ndarray:
+    """Whether the detector finds the hand (K, E) in each eye's rendering of the arm with table
+    ``dh`` (L, 4) at ``configs`` (K, L)."""
     from icub_sim_bridge.world import SimWorld
     from marker_detector.detection import HandPoseEstimator
 
+    detector = HandPoseEstimator(model, PoseDependentNoise())
+    seen = np.zeros((len(configs), len(eyes)), dtype=bool)
+    with SimWorld(model, dh, head_pose=model.eyes.head_pose) as world:
+        for i, theta in enumerate(configs):
+            world.set_joint_positions(theta)
+            for j, eye in enumerate(eyes):
+                cam = model.camera_pose(eye)
+                gray = cv2.cvtColor(world.render(cam, model.camera), cv2.COLOR_RGB2GRAY)
+                seen[i, j] = detector.process(gray, model.camera.K, None, cam).success
+    return seen
+
+
+def detections(seed: int, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Marker poses (n, M, 4, 4) under the true table of ``seed`` and whether the detector saw the hand (n,)."""
     model = load_robot()
     dh = true_table(model, seed)
-    cam = model.camera_pose('left')
-    detector = HandPoseEstimator(model, PoseDependentNoise())
     q = uniform_configs(model.calibration_box, n, seed)
-    seen = np.zeros(n, dtype=bool)
-    with SimWorld(model, dh, head_pose=model.eyes.head_pose) as world:
-        for i, theta in enumerate(q):
-            world.set_joint_positions(theta)
-            gray = cv2.cvtColor(world.render(cam, model.camera), cv2.COLOR_RGB2GRAY)
-            seen[i] = detector.process(gray, model.camera.K, None, cam).success
     markers = np.stack([m.hand_T_marker for m in model.markers])
-    return kinematics.chain_frames(model.base, dh, q)[:, -1, None] @ markers, seen
+    return kinematics.chain_frames(model.base, dh, q)[:, -1, None] @ markers, seen_by_eye(model, dh, q)[:, 0]
 
 
 def fit(camera_pose: np.ndarray, marker_poses: np.ndarray, seen: np.ndarray,

@@ -222,7 +222,6 @@ def test_experiment_compare_pairs_the_methods_both_ran(recorded_experiment: Path
     for r in rows:
         if int(r['iteration']) == last:
             r['position_mm'] = str(float(r['position_mm']) - 0.1)
-    (tmp_path / 'metrics.csv').write_text('')
     with (tmp_path / 'metrics.csv').open('w', newline='') as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
         w.writeheader()

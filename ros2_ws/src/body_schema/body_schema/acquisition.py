@@ -450,17 +450,17 @@ class AcquisitionCost:
         With two cameras ``R`` is that of the likeliest outcome (both, or one camera alone)."""
         frames = kinematics.chain_frames(self.base, self.dh, np.asarray(theta, dtype=float)[None])
         H = self._jacobian(frames)[0]                                            # noqa: N806
+        hp = H @ self.P
+        hph = hp @ H.T
         if len(self._cameras) == 1:
             R = self.noise.hand_covariance(self._cameras[0], frames[0, -1], self.markers).reshape(6, 6)  # noqa: N806
         else:
             covariances = self._pair_covariances(frames[:, -1])
             likeliest = 0
             if self.visibility is not None:
-                hph = H @ self.P @ H.T
                 likeliest = int(np.argmax([o[0] for o in self._pair_outcomes(frames[:, -1], hph[None])]))
             R = covariances[likeliest][0]                                        # noqa: N806
-        hp = H @ self.P
-        post = self.P - hp.T @ np.linalg.solve(hp @ H.T + R, hp)
+        post = self.P - hp.T @ np.linalg.solve(hph + R, hp)
         return 0.5 * (post + post.T)
 
     def terms(self, theta: ArrayLike) -> tuple[float, float, float]:

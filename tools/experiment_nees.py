@@ -8,7 +8,8 @@ used (``config.json``: the ``estimator.*`` parameters of its method) through
 identifiable parameter combinations, its band, and the re-run's final error next to the online
 one (they agree when the re-run reproduces the run), then how many runs lie inside their band and
 how the innovations after the warm-up compare with the noise law (how many beyond its 99.99 %
-bound, against the 1 in 10,000 a right law gives; the median of the runs' median NIS).
+bound, against the 1 in 10,000 a right law gives; the median of the runs' median NIS). Exit
+status 1 when a requested run has no finished recording (the table then covers fewer runs).
 
 Usage (from the repository root)::
 
@@ -79,11 +80,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f'{args.output}: no config.json (not an experiment output directory)', file=sys.stderr)
         return 2
     first = json.loads((args.output / 'config.json').read_text())['seed_base']
+    missing = 0
     print('| method | runs | NEES in its band | NEES median | band (95 %) | innovations beyond the 99.99 % bound '
           '(expected) | median NIS (5.3) | re-run vs online (max diff mm) |')
     print('|---|---|---|---|---|---|---|---|')
     for method in args.methods:
         rows = run_nees(args.output, method, range(args.repetitions))
+        missing += args.repetitions - len(rows)
         for r in rows:
             print(f'  {method} rep {r["repetition"]} (seed {first + r["repetition"]}): NEES {r["nees"]:.1f} '
                   f'band {r["band"][0]:.1f}-{r["band"][1]:.1f} {"in" if r["in_band"] else "OUT"}; '
@@ -99,6 +102,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f'| {method} | {len(rows)} | {sum(r["in_band"] for r in rows)} of {len(rows)} | {np.median(nees):.1f} | '
               f'{band[0]:.1f}-{band[1]:.1f} | {beyond} of {count} ({count * 1e-4:.2f}) | '
               f'{median_nis} | {diff:.3f} |')
+    if missing:
+        # A table over fewer runs than asked for is partial: say so in the exit status too.
+        print(f'experiment_nees: {missing} of the requested runs have no finished recording', file=sys.stderr)
+        return 1
     return 0
 
 

@@ -194,6 +194,9 @@ def test_experiment_nees_reruns_each_recorded_run_to_its_online_error(recorded_e
     assert float(row[3]) > 0 and float(row[7]) < 1e-6          # the re-run ends at the online error
     with pytest.raises(KeyError, match="no settings for method 'CCSAL'"):
         experiment_nees.run_nees(recorded_experiment, 'CCSAL', [0])
+    # A repetition that was never run makes the table partial, and the exit status says so.
+    assert experiment_nees.main([str(recorded_experiment), '--methods', 'AL', '--repetitions', '2']) == 1
+    assert 'of the requested runs have no finished recording' in capsys.readouterr().err
 
 
 @pytest.mark.slow
@@ -207,6 +210,7 @@ def test_visibility_attempts_scores_every_grid_point_on_the_rendered_attempts(
     rows = _rows(out, '| margin | marker widths |')
     assert [(float(r[0]), float(r[1])) for r in rows] == list(visibility_attempts.GRID)
     assert all(float(r[2]) < 0 for r in rows)
+    assert visibility_attempts.main([str(recorded_experiment), '--repetitions', '2']) == 1     # rep01 missing
 
 
 @pytest.mark.slow

@@ -725,7 +725,8 @@ def _urdf_arm(data: dict[str, Any], where: str, source: str) -> dict[str, Any]:
 
 
 #: The keys a description's ``noise_model:`` block may set (units as in PoseDependentNoise).
-NOISE_LAW_KEYS: tuple[str, ...] = ('a_pos', 'b_pos', 'floor_pos', 'a_rot', 'b_rot', 'floor_rot', 'depth_ratio')
+NOISE_LAW_KEYS: tuple[str, ...] = ('a_pos', 'b_pos', 'floor_pos', 'a_rot', 'b_rot', 'floor_rot', 'depth_ratio',
+                                   'stereo_pos', 'stereo_rot')
 
 
 def parse_noise_law(n: Any, where: str) -> tuple[dict[str, float], str, float]:
@@ -736,7 +737,7 @@ def parse_noise_law(n: Any, where: str) -> tuple[dict[str, float], str, float]:
     ------
     RobotDescriptionError
         Naming ``where`` and the key, for a block that is not a mapping, an unknown key, a value
-        that is not a number or out of its range (coefficients >= 0, ``depth_ratio`` > 0,
+        that is not a number or out of its range (coefficients >= 0, ``depth_ratio``, ``stereo_pos``, ``stereo_rot`` > 0,
         ``loss_scale`` in [0.1, 100]), or an unknown ``covariance``.
     """
     from .map_estimator import COVARIANCES, LOSS_SCALE_RANGE     # here: map_estimator is a higher layer than robot
@@ -769,7 +770,7 @@ def parse_noise_law(n: Any, where: str) -> tuple[dict[str, float], str, float]:
             law[k] = float(v)
         except (TypeError, ValueError) as exc:
             raise RobotDescriptionError(f'{where}.{k}: must be a number, got {v!r}') from exc
-        positive = k == 'depth_ratio'                  # a ratio of standard deviations; the rest may be 0
+        positive = k in ('depth_ratio', 'stereo_pos', 'stereo_rot')      # ratios; the rest may be 0
         if not np.isfinite(law[k]) or law[k] < 0 or (positive and law[k] == 0):
             raise RobotDescriptionError(f'{where}.{k}: must be finite and {"> 0" if positive else ">= 0"}, got {v!r}')
     return law, covariance, loss_scale

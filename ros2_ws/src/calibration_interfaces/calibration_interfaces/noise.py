@@ -72,10 +72,10 @@ class NoiseSettings:
 
     def build(self, model: ArmModel | None = None,
               pose_dependent: PoseDependentSettings = PoseDependentSettings()) -> PoseDependentNoise | ConstantNoise:
-        """The selected model, through the :func:`body_schema.noise.noise_model` factory.
+        """The selected model.
 
-        ``model`` (the robot description) gives the pose-dependent law's coefficients
-        (:meth:`PoseDependentSettings.build`); without it, the built-in defaults.
+        ``model`` (the robot description) gives the pose-dependent law, its ``depth_ratio`` and
+        stereo ratios included (:meth:`PoseDependentSettings.build`); without it, the built-in defaults.
 
         Raises
         ------
@@ -85,6 +85,7 @@ class NoiseSettings:
         if self.constant:
             return noise_model('constant', sigma_pos=self.cn_sigma_pos,
                                sigma_rot=float(np.radians(self.cn_sigma_rot_deg)))
-        p = pose_dependent.build(model)
-        return noise_model(self.noise_model, a_pos=p.a_pos, b_pos=p.b_pos, a_rot=p.a_rot, b_rot=p.b_rot,
-                           floor_pos=p.floor_pos, floor_rot=p.floor_rot)
+        if self.noise_model not in NOISE_MODELS:
+            raise ValueError(f'unknown noise model {self.noise_model!r}; expected one of {list(NOISE_MODELS)}')
+        # The whole law, its depth_ratio and stereo ratios included (not only the six coefficients).
+        return pose_dependent.build(model)

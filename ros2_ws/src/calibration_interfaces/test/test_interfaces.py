@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -273,6 +273,12 @@ def test_noise_parameters_take_the_description_law_unless_set() -> None:
     law = NoiseSettings().build(ur, PoseDependentSettings(pdn_a_rot=1e-3))
     assert law.a_rot == 1e-3 and law.a_pos == ur.noise_law['a_pos']                # only what was set
     assert isinstance(NoiseSettings(noise_model='constant').build(ur), ConstantNoise)
+    # The whole law reaches the nodes: a description's depth_ratio and stereo ratios too.
+    eyed = replace(ur, noise_law={**ur.noise_law, 'depth_ratio': 4.0, 'stereo_pos': 0.2, 'stereo_rot': 1.3})
+    law = NoiseSettings().build(eyed, PoseDependentSettings(pdn_a_rot=1e-3))
+    assert (law.depth_ratio, law.stereo_pos, law.stereo_rot, law.a_rot) == (4.0, 0.2, 1.3, 1e-3)
+    with pytest.raises(ValueError, match='unknown noise model'):
+        NoiseSettings(noise_model='gaussian').build(ur)
     spec = {s.name: s for s in parameter_specs(PoseDependentSettings)}['pdn_a_pos']
     assert spec.default == -1.0 and spec.range[0] == -1.0 and 'description' in spec.description
     # Equal coefficients for both blocks and no floors: the paper's single law R = sigma^2 I.

@@ -18,7 +18,7 @@ from body_schema import load_robot
 from body_schema.noise import PoseDependentNoise
 from body_schema.sampling import uniform_configs
 
-from marker_detector.detection import DetectorConfig, HandPoseEstimator, fuse_estimates, gate_marker
+from marker_detector.detection import DetectorConfig, FrameResult, HandPoseEstimator, fuse_estimates, gate_marker
 from tools.detector_accuracy import (FLIP_DEG, Frame, FrameScores, binned, collect, evaluate, fit_noise, summarize,
                                      time_frames)
 
@@ -32,25 +32,28 @@ def _fmt(v: float, nd: int = 1) -> str:
 
 
 def _stereo_rows(left: list[Frame], right: list[Frame], est: HandPoseEstimator) -> list[str]:
-    """Left only vs right only vs information-weighted stereo, on configs where both succeed."""
+    """Left only vs right only vs the eyes' poses fused vs the detector's stereo estimate (both
+    images' corners in one refinement), on configs where both succeed."""
     errs: dict[str, list[tuple[float, float]]] = {'left eye only': [], 'right eye only': [],
-                                                  'stereo (weighted)': []}
+                                                  'the eyes\' poses fused (weighted)': [],
+                                                  'stereo (both images\' corners; published)': []}
     n_any, n_eye = 0, np.zeros(2, dtype=int)
     for fl, fr in zip(left, right):
-        hands = []
+        hands, views = [], []
         for f in (fl, fr):
             gated = [gate_marker(p, est.config) for p in f.poses]
             hands.append(est.combine(gated, f.k, None, f.root_T_cam))
+            views.append((FrameResult(markers=[p for p in gated if p.ok], hand=hands[-1], k=f.k), f.root_T_cam))
         n_any += any(h is not None for h in hands)
         n_eye += [h is not None for h in hands]
         if any(h is None for h in hands):
             continue
-        for name, h in zip(errs, hands + [fuse_estimates(hands)]):
+        for name, h in zip(errs, hands + [fuse_estimates(hands), est.stereo(views)]):
             d = h.pose[:3, 3] - fl.truth[:3, 3]
             a = Rotation.from_matrix(h.pose[:3, :3] @ fl.truth[:3, :3].T).magnitude()
             errs[name].append((float(np.linalg.norm(d)) * 1e3, float(np.degrees(a))))
     n = max(len(left), 1)
-    pl, pr, pb = n_eye[0] / n, n_eye[1] / n, len(errs['stereo (weighted)']) / n
+    pl, pr, pb = n_eye[0] / n, n_eye[1] / n, len(errs['left eye only']) / n
     # The selector's eye_correlation c: P(both) = c min(pl, pr) + (1 - c) pl pr.
     c = (pb - pl * pr) / (min(pl, pr) - pl * pr) if min(pl, pr) > pl * pr else float('nan')
     rows = [f'Configurations with a hand pose from at least one eye: {n_any}/{len(left)} '

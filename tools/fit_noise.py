@@ -19,6 +19,11 @@ Usage (from the repository root)::
 on a real camera fit to the simulator with the noise your images show, or keep the defaults and
 check the NEES the estimator reports.
 
+A robot with two eyes also gets the law's stereo ratios (:func:`stereo_ratios`): on the
+configurations both eyes see the hand, the error of the detector's stereo estimate (both images'
+corners in one refinement) over the eyes' fused variances, which the detector and the selector
+then scale the fused covariance by (:func:`body_schema.noise.stereo_covariance`).
+
 The law is the errors' variance; heavy-tailed errors are typically much smaller than it says.
 The report gives their typical size in the law's standard deviations (:func:`typical_spread`),
 and ``--loss-scale`` adds the MAP estimator's ``loss_scale`` for it to the block
@@ -29,20 +34,22 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
 from body_schema.map_estimator import LOSS_SCALE_RANGE, MapSettings
-from body_schema.noise import ConstantNoise, NoiseModel, PoseDependentNoise
+from body_schema.noise import ConstantNoise, NoiseModel, PoseDependentNoise, stereo_covariance
 from body_schema.robot import NOISE_LAW_KEYS, ArmModel, load_robot
 from body_schema.sampling import uniform_configs
 
-from marker_detector.detection import DetectorConfig, HandPoseEstimator
-from tools.detector_accuracy import FLIP_DEG, FrameScores, NoiseFit, collect, evaluate, fit_noise, position_chi2, summarize
+from marker_detector.detection import DetectorConfig, FrameResult, HandPoseEstimator, fuse_estimates, gate_marker
+from tools.detector_accuracy import (FLIP_DEG, Frame, FrameScores, NoiseFit, collect, evaluate, fit_noise, position_chi2,
+                                     summarize)
 
-__all__ = ['views_of', 'law_yaml', 'calibration_of', 'tails', 'typical_spread', 'loss_scale_for', 'shape',
+__all__ = ['views_of', 'law_yaml', 'calibration_of', 'tails', 'typical_spread', 'loss_scale_for', 'shape', 'stereo_ratios',
            'main']
 
 CHI2_3_95 = 7.814727903251178                   # chi-square(3) 95 % quantile
@@ -59,11 +66,15 @@ def views_of(model: ArmModel) -> list[tuple[str, tuple[int, int]]]:
     return [(name, size) for name in names]
 
 
-def law_yaml(law: PoseDependentNoise, comment: str, covariance: str = '', loss_scale: float = 0.0) -> str:
+def law_yaml(law: PoseDependentNoise, comment: str, covariance: str = '', loss_scale: float = 0.0,
+             stereo: bool = False) -> str:
     """The ``noise_model:`` block of a robot description for ``law`` (3 significant digits), with the
-    estimator's ``covariance`` and ``loss_scale`` where given."""
-    body = ', '.join([f'{k}: {getattr(law, k):.3g}' for k in NOISE_LAW_KEYS
-                      if k != 'depth_ratio' or law.depth_ratio != 1.0]
+    estimator's ``covariance`` and ``loss_scale`` where given, and the stereo ratios with ``stereo``
+    (a robot with two eyes)."""
+    skip = {'stereo_pos', 'stereo_rot'} if not stereo else set()
+    if law.depth_ratio == 1.0:
+        skip.add('depth_ratio')            # the isotropic law
+    body = ', '.join([f'{k}: {getattr(law, k):.3g}' for k in NOISE_LAW_KEYS if k not in skip]
                      + ([f'covariance: {covariance}'] if covariance else [])
                      + ([f'loss_scale: {loss_scale:.2g}'] if loss_scale > 0 else []))
     return f'# {comment}\nnoise_model: {{{body}}}\n'
@@ -178,6 +189,70 @@ def shape(model: NoiseModel, out: FrameScores, cameras: np.ndarray) -> dict[str,
     return {**spread, 'ratio': float(ratio)}
 
 
+def stereo_ratios(frames: Sequence[Frame], law: PoseDependentNoise, model: ArmModel,
+                  config: DetectorConfig | None = None) -> dict[str, float]:
+    """The law's stereo variance ratios, fitted where both eyes found the hand.
+
+    For every configuration whose two eye frames each give a hand estimate under ``law``, the
+    detector's stereo estimate (:meth:`HandPoseEstimator.stereo`) is compared with the truth; each
+    ratio is the error's variance over the eyes' fused covariance (variance-matched, as
+    the law itself is: the mean squared error whitened by the fused covariance, per axis; planar
+    flips, over :data:`FLIP_DEG`, left out).
+
+    Parameters
+    ----------
+    frames : sequence of Frame
+        From :func:`tools.detector_accuracy.collect` with the views ``left`` and ``right``.
+
+    Returns
+    -------
+    dict with ``stereo_pos``, ``stereo_rot`` (NaN without a pair), ``n`` pairs used, ``fallbacks``
+    (pairs whose refinement was refused and the fused poses kept), and the stereo and the left
+    eye's median position and orientation errors [mm, deg] over the same pairs.
+    """
+    from scipy.spatial.transform import Rotation
+
+    est = HandPoseEstimator(model, law, config or DetectorConfig())
+    unit = replace(law, stereo_pos=1.0, stereo_rot=1.0)
+    by_config: dict[int, dict[str, Frame]] = {}
+    for f in frames:
+        by_config.setdefault(f.config, {})[f.eye] = f
+    ratios_p, ratios_o, errs, left = [], [], [], []
+    fallbacks = 0
+    for pair in by_config.values():
+        if set(pair) != {'left', 'right'}:
+            continue
+        views = []
+        for f in (pair['left'], pair['right']):
+            gated = [gate_marker(p, est.config) for p in f.poses]
+            hand = est.combine(gated, f.k, None, f.root_T_cam)
+            views.append((FrameResult(markers=[p for p in gated if p.ok], hand=hand, k=f.k), f.root_T_cam))
+        if any(r.hand is None for r, _ in views):
+            continue
+        truth = pair['left'].truth
+        fused = fuse_estimates([r.hand for r, _ in views])
+        hand = est.stereo(views)
+        fallbacks += bool(np.array_equal(hand.pose, fused.pose))
+        e_p = hand.pose[:3, 3] - truth[:3, 3]
+        e_o = Rotation.from_matrix(hand.pose[:3, :3] @ truth[:3, :3].T).as_rotvec()
+        if np.degrees(np.linalg.norm(e_o)) > FLIP_DEG:
+            continue
+        # Whitened by the eyes' fused covariance (ratios 1), whose blocks the ratios then scale.
+        c = stereo_covariance(np.stack([r.hand.covariance for r, _ in views]), unit)
+        ratios_p.append(e_p @ np.linalg.solve(c[:3, :3], e_p) / 3)
+        ratios_o.append(e_o @ np.linalg.solve(c[3:, 3:], e_o) / 3)
+        lp = views[0][0].hand.pose
+        errs.append((1e3 * np.linalg.norm(e_p), np.degrees(np.linalg.norm(e_o))))
+        left.append((1e3 * np.linalg.norm(lp[:3, 3] - truth[:3, 3]),
+                     np.degrees(np.linalg.norm(Rotation.from_matrix(lp[:3, :3] @ truth[:3, :3].T).as_rotvec()))))
+    if not ratios_p:
+        return {'stereo_pos': float('nan'), 'stereo_rot': float('nan'), 'n': 0, 'fallbacks': fallbacks}
+    e, lo = np.median(errs, axis=0), np.median(left, axis=0)
+    return {'stereo_pos': float(np.mean(ratios_p)), 'stereo_rot': float(np.mean(ratios_o)), 'n': len(ratios_p),
+            'fallbacks': int(fallbacks), 'pos_med_mm': float(e[0]), 'rot_med_deg': float(e[1]),
+            'left_pos_med_mm': float(lo[0]), 'left_rot_med_deg': float(lo[1])}
+
+
 def _row(name: str, model: NoiseModel, out: FrameScores) -> str:
     c = calibration_of(model, out)
     return (f'| {name} | {c["ratio_pos"]:.3g} | {c["ratio_rot"]:.3g} | {c["cover_pos"]:.2f} | '
@@ -199,6 +274,22 @@ def run(robot: str, n: int, seed: int, pixel_noise: float, depth: bool = False,
     current = PoseDependentNoise.for_robot(model)
     out = evaluate(frames, HandPoseEstimator(model, current, DetectorConfig()))
     fit = fit_noise(out, depth=depth)
+    stereo_text, stereo_fitted = '', False
+    if {'left', 'right'} <= {name for name, _ in views}:
+        st = stereo_ratios(frames, replace(fit.pdn, stereo_pos=1.0, stereo_rot=1.0), model)
+        if st['n'] >= 10:
+            fit = replace(fit, pdn=replace(fit.pdn, stereo_pos=st['stereo_pos'], stereo_rot=st['stereo_rot']))
+            stereo_fitted = True
+            stereo_text = (
+                'Stereo: on the {n} configurations both eyes see the hand, the detector\'s stereo estimate (both '
+                'images\' corners in one refinement; {fb} refused, the fused poses kept) is off by {p:.2f} mm / '
+                '{o:.3f} deg (median; the left eye alone {lp:.2f} mm / {lo:.3f} deg): its variance is {sp:.3g} '
+                '(position) and {so:.3g} (orientation) of the eyes\' fused ones (`stereo_pos`, `stereo_rot`).'
+                .format(n=st['n'], fb=st['fallbacks'], p=st['pos_med_mm'], o=st['rot_med_deg'],
+                        lp=st['left_pos_med_mm'], lo=st['left_rot_med_deg'], sp=st['stereo_pos'],
+                        so=st['stereo_rot']))
+        else:
+            stereo_text = f'Stereo: only {st["n"]} configurations with both eyes\' hands; the ratios stay 1.'
     tl = tails(fit.pdn, out)
     sh = shape(fit.pdn, out, np.array([f.root_T_cam[:3, :3] for f in frames]))
     covariance = 'sandwich_hc3' if tl['dof'] < HEAVY_TAILS_DOF else ''
@@ -248,12 +339,13 @@ def run(robot: str, n: int, seed: int, pixel_noise: float, depth: bool = False,
               f'along the line of sight is {fit.pdn.depth_ratio:.3g} times that across it.' if depth else
               'An isotropic position law (`--depth` fits one across the line of sight and its `depth_ratio` '
               'along it).'), '',
+             *([stereo_text, ''] if stereo_text else []),
              f'Fitted on {fit.n} poses; {time.perf_counter() - t0:.0f} s. Paste into the description:', '',
              '```yaml',
              law_yaml(fit.pdn, f'Fitted by: python -m tools.fit_noise --robot {robot} --n {n} --seed {seed} '
                                f'--pixel-noise {pixel_noise:g}' + (' --depth' if depth else '')
                                + (' --loss-scale' if with_loss_scale else ''), covariance,
-                      loss_scale if with_loss_scale else 0.0).rstrip(),
+                      loss_scale if with_loss_scale else 0.0, stereo=stereo_fitted).rstrip(),
              f'# CN baseline fitted on the same poses: cn_sigma_pos {fit.cn.sigma_pos:.3g} m, '
              f'cn_sigma_rot_deg {np.degrees(fit.cn.sigma_rot):.3g}',
              '```', '']

@@ -12,7 +12,7 @@ from body_schema import load_robot
 from body_schema.noise import PoseDependentNoise
 from body_schema.robot import robot_from_dict, robot_path
 from tools.detector_accuracy import FrameScores, draw_scores
-from tools.fit_noise import calibration_of, law_yaml, main, shape, tails, views_of
+from tools.fit_noise import calibration_of, law_yaml, main, shape, stereo_ratios, tails, views_of
 
 
 def _draw(law: PoseDependentNoise, n: int, seed: int) -> FrameScores:
@@ -26,6 +26,28 @@ def test_the_printed_block_is_a_description_block_that_loads_back() -> None:
     assert PoseDependentNoise.for_robot(robot_from_dict(data)) == law
     data.update(yaml.safe_load(law_yaml(law, 'fitted', 'sandwich_hc3')))
     assert robot_from_dict(data).noise_covariance == 'sandwich_hc3'
+    # The stereo ratios are printed for a robot with eyes only, and load back.
+    assert 'stereo' not in law_yaml(law, 'fitted')
+    eyed = dataclasses.replace(law, stereo_pos=0.2, stereo_rot=1.3)
+    data = yaml.safe_load(robot_path('icub_right_arm').read_text())
+    data.update(yaml.safe_load(law_yaml(eyed, 'fitted', stereo=True)))
+    assert PoseDependentNoise.for_robot(robot_from_dict(data)) == eyed
+
+
+def test_the_stereo_ratios_of_rendered_eyes_say_the_stereo_estimate_beats_the_fused_one() -> None:
+    from body_schema.sampling import uniform_configs
+    from icub_sim_bridge.world import SimWorld
+    from tools.detector_accuracy import collect
+
+    model = load_robot('icub_right_arm')
+    with SimWorld(model) as world:
+        frames = collect(model, world, uniform_configs(model.calibration_box, 60, 11), views_of(model))
+    st = stereo_ratios(frames, PoseDependentNoise(stereo_pos=1.0, stereo_rot=1.0), model)
+    assert st['n'] >= 10
+    assert st['stereo_pos'] < 0.5 and st['pos_med_mm'] < 0.6 * st['left_pos_med_mm']
+    assert 0.3 < st['stereo_rot'] < 3.0
+    # One eye only: nothing to fit.
+    assert stereo_ratios([f for f in frames if f.eye == 'left'], PoseDependentNoise(), model)['n'] == 0
 
 
 def test_calibration_figures_are_one_for_the_true_law_and_show_a_pessimistic_one() -> None:

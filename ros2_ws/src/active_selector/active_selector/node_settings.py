@@ -31,10 +31,10 @@ class SelectorNodeSettings:
     robot: str = setting('icub_right_arm', 'Packaged robot name or YAML path')
     eye: str = setting('left', 'Which eye the detector uses (its camera pose enters the cost)',
                        choices=('left', 'right'))
-    use_right_eye: bool = setting(False, "Plan for both eyes, as the detector fuses them (set it to the detector's "
-                                  'use_right_eye): an attempt counts as seen when either eye sees the hand, and '
-                                  'the gain is that of the fused or single-eye detection (a robot with eyes; '
-                                  'ignored for a fixed camera)')
+    use_right_eye: bool = setting(False, "Plan for both eyes, as the detector sees with them (set it to the "
+                                  "detector's use_right_eye): an attempt counts as seen when either eye sees the "
+                                  'hand, and the gain is that of the stereo or single-eye detection (a robot with '
+                                  'eyes; ignored for a fixed camera)')
     progress_file: str = setting('', 'JSON-lines file, one object per iteration')
     wait_for_recorder: bool = setting(False, 'Select the first target only once /calibration/progress has a '
                                              'subscriber (the recorder, which subscribes to /arm/command in the '

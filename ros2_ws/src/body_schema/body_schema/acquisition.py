@@ -37,10 +37,10 @@ its prior mean at each candidate is the geometric prediction from the current es
 facing the camera inside the image), widened by the predicted hand-pose covariance ``H P H^T``
 already computed for the gain, instead of the paper's flat ``a0 / (a0 + b0)``.
 
-Two cameras (the iCub's eyes, whose detections the detector fuses): the cost takes both poses;
+Two cameras (the iCub's eyes, whose images the detector combines): the cost takes both poses;
 ``eta``'s prior is the probability that either eye sees the hand, and ``g`` the expected gain of
-the detection the attempt gives when it succeeds: fused when both eyes see the hand, one eye's
-when only it does (:meth:`AcquisitionCost.terms_batch`).
+the detection the attempt gives when it succeeds: the stereo one when both eyes see the hand, one
+eye's when only it does (:meth:`AcquisitionCost.terms_batch`).
 
 Strategies:
 
@@ -88,7 +88,7 @@ from scipy.stats import qmc
 
 from . import kinematics
 from .extrinsics import Extrinsics
-from .noise import ConstantNoise, NoiseModel
+from .noise import ConstantNoise, NoiseModel, stereo_covariance
 from .occlusion import OcclusionModel, VisibilityPrior
 from .robot import MarkerPlacement
 from .sampling import as_rng
@@ -250,8 +250,8 @@ class AcquisitionCost:
     noise : NoiseModel
         Predicts ``R(theta)`` from the expected hand pose.
     camera_pose : ndarray, shape (4, 4) or (2, 4, 4)
-        Camera optical frame in the root frame; two stacked for a stereo pair whose detections are
-        fused (an attempt succeeds when either camera sees the hand; see :meth:`terms_batch`).
+        Camera optical frame in the root frame; two stacked for a stereo pair whose images give one
+        detection (an attempt succeeds when either camera sees the hand; see :meth:`terms_batch`).
     markers : sequence of MarkerPlacement
     occlusion : OcclusionModel, optional
         ``eta(theta)``; ``None`` means ``eta = 1`` (or the visibility prior alone, if given).
@@ -352,7 +352,8 @@ class AcquisitionCost:
         """Gain, success probability and hand x for a batch of configurations.
 
         With two cameras, ``gain`` is the expected gain given that the attempt succeeds: over the
-        outcomes "both cameras see the hand" (their detections fused: ``R = (R_1^-1 + R_2^-1)^-1``)
+        outcomes "both cameras see the hand" (one detection from both images:
+        :func:`~body_schema.noise.stereo_covariance`, ``(R_1^-1 + R_2^-1)^-1`` scaled by the law's stereo ratios)
         and "only camera k does" (``R_k``), weighted by the cameras' geometric visibilities
         (:attr:`eye_correlation`) or, without a visibility prior, assuming both see it; the
         visibility prior is then the probability that either camera sees the hand.
@@ -398,8 +399,7 @@ class AcquisitionCost:
     def _pair_covariances(self, hand: NDArray[np.float64]) -> list[NDArray[np.float64]]:
         """``R`` (N, 6, 6) of the outcomes both, first only, second only."""
         r1, r2 = (self.noise.hand_covariance(cam, hand, self.markers).reshape(-1, 6, 6) for cam in self._cameras)
-        fused = np.linalg.inv(np.linalg.inv(r1) + np.linalg.inv(r2))
-        return [0.5 * (fused + np.swapaxes(fused, -1, -2)), r1, r2]
+        return [stereo_covariance(np.stack([r1, r2], axis=-3), self.noise), r1, r2]
 
     def _stereo_terms(self, hand: NDArray[np.float64], hp: NDArray[np.float64],
                       hph: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:

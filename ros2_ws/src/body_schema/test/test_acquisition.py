@@ -8,7 +8,7 @@ import body_schema
 from body_schema import ekf, sampling
 from body_schema.acquisition import (AcquisitionCost, JointSelector, SelectorConfig, Strategy,
                                      expected_trace)
-from body_schema.noise import PoseDependentNoise
+from body_schema.noise import PoseDependentNoise, stereo_covariance
 from body_schema.occlusion import OcclusionModel, VisibilityPrior
 
 
@@ -364,7 +364,7 @@ def _stereo(arm, box_configs, **kw):
     return mono, replace(mono, camera_pose=pair)
 
 
-def test_stereo_without_visibility_prior_gains_what_the_fused_detection_teaches(arm, box_configs):
+def test_stereo_without_visibility_prior_gains_what_the_stereo_detection_teaches(arm, box_configs):
     mono, stereo = _stereo(arm, box_configs)
     right = replace(mono, camera_pose=arm.camera_pose('right'))
     qs = sampling.uniform_configs(arm.calibration_box, 32, 7)
@@ -372,14 +372,17 @@ def test_stereo_without_visibility_prior_gains_what_the_fused_detection_teaches(
     np.testing.assert_array_equal(eta, 1.0)                # no prior: both eyes assumed to see it
     hands = kinematics.forward_kinematics(arm.base, stereo.dh, qs)
     r1, r2 = (PoseDependentNoise().hand_covariance(c, hands, arm.markers) for c in stereo.camera_pose)
-    fused = np.linalg.inv(np.linalg.inv(r1) + np.linalg.inv(r2))
+    fused = stereo_covariance(np.stack([r1, r2], axis=-3), PoseDependentNoise())    # the stereo detection's
     frames = kinematics.chain_frames(arm.base, stereo.dh, qs)
     hp = kinematics.pose_jacobian_from_frames(frames) @ stereo.P
     expected = information_gain(hp, hp @ np.swapaxes(kinematics.pose_jacobian_from_frames(frames), -1, -2) + fused,
                                 stereo.weight)
     np.testing.assert_allclose(gain, expected, rtol=1e-10)
-    # Two eyes teach more than either alone, and the update's covariance is the fused one's.
-    assert np.all(gain > mono.terms_batch(qs)[0]) and np.all(gain > right.terms_batch(qs)[0])
+    # Two eyes teach more than either alone (on average: the stereo orientation, 1.4 times the
+    # independent fusion's variance, can be worse than one eye's where the other sees badly), and
+    # the update's covariance is the stereo detection's.
+    assert gain.mean() > mono.terms_batch(qs)[0].mean() and gain.mean() > right.terms_batch(qs)[0].mean()
+    assert np.mean(gain > mono.terms_batch(qs)[0]) > 0.9
     np.testing.assert_allclose(stereo.evaluate(qs), [stereo(q) for q in qs], rtol=1e-12, atol=1e-15)
     H = kinematics.pose_jacobian_from_frames(frames[:1])[0]
     S = H @ stereo.P @ H.T + fused[0]

@@ -32,7 +32,7 @@ from scipy.spatial.transform import Rotation
 
 from body_schema.kinematics import rotation_angle_deg
 from body_schema.markers import aruco_dictionary, marker_corners, refine_corners_edges
-from body_schema.noise import NoiseModel, PoseDependentNoise, line_of_sight_covariance, view_geometry
+from body_schema.noise import NoiseModel, PoseDependentNoise, line_of_sight_covariance, stereo_covariance, view_geometry
 from body_schema.robot import ArmModel, MarkerPlacement
 from calibration_interfaces.outcome import FrameStatus
 from calibration_interfaces.parameters import setting
@@ -40,7 +40,7 @@ from calibration_interfaces.parameters import setting
 __all__ = [
     'FUSION_MODES', 'BadInput', 'DetectorConfig', 'DetectedMarker', 'MarkerPose', 'HandEstimate',
     'FrameResult', 'MarkerDetector', 'solve_marker_pose', 'gate_marker',
-    'hand_from_marker', 'fuse_estimates', 'refine_joint', 'HandPoseEstimator',
+    'hand_from_marker', 'fuse_estimates', 'refine_joint', 'StereoView', 'refine_stereo', 'HandPoseEstimator',
 ]
 
 #: How several accepted markers (or eyes) are combined into one hand pose:
@@ -193,7 +193,9 @@ class FrameResult:
 
     ``markers`` are the accepted marker poses (what ``/markers`` carries); ``rejected`` the
     detected-but-refused ones; ``hand`` is None for a failed detection; ``bad_input`` is set
-    when the frame could not be judged at all (then there are no markers and no hand).
+    when the frame could not be judged at all (then there are no markers and no hand). ``k``
+    and ``dist`` are the camera matrix and distortion the image was judged with (None before
+    that), which a stereo refinement projects through (:meth:`HandPoseEstimator.stereo`).
     """
 
     markers: list[MarkerPose] = field(default_factory=list)
@@ -201,6 +203,8 @@ class FrameResult:
     hand: HandEstimate | None = None
     seconds: float = 0.0
     bad_input: BadInput | None = None
+    k: NDArray[np.float64] | None = None
+    dist: NDArray[np.float64] | None = None
 
     @property
     def success(self) -> bool:
@@ -496,6 +500,94 @@ def refine_joint(cam_T_hand0: ArrayLike, markers: Sequence[MarkerPose],
     return t if np.all(np.isfinite(t)) and t[2, 3] > 0 else t0
 
 
+@dataclass(frozen=True)
+class StereoView:
+    """One eye's share of a stereo refinement.
+
+    Attributes
+    ----------
+    root_T_cam : ndarray, shape (4, 4)
+        The eye's optical frame in the output frame.
+    k : ndarray, shape (3, 3)
+    dist : ndarray, shape (N,), or None
+    markers : sequence of MarkerPose
+        The eye's accepted markers (their detected corners are used).
+    """
+
+    root_T_cam: NDArray[np.float64]
+    k: NDArray[np.float64]
+    dist: NDArray[np.float64] | None
+    markers: Sequence[MarkerPose]
+
+
+def refine_stereo(root_T_hand0: ArrayLike, views: Sequence[StereoView], placements: dict[int, MarkerPlacement],
+                  side: float) -> tuple[NDArray[np.float64], float]:
+    """One hand pose from the marker corners of several calibrated cameras (Levenberg-Marquardt).
+
+    Minimises the reprojection error of every accepted marker corner in every view over the hand
+    pose in the root frame: one camera measures a marker's depth from its apparent size, two
+    cameras by triangulation over their baseline (on the iCub's eyes, 3.7 times lower position
+    error than fusing the eyes' poses; docs/marker_detector.md).
+
+    Parameters
+    ----------
+    root_T_hand0 : array_like, shape (4, 4)
+        Initial hand pose in the root frame (e.g. the eyes' poses fused).
+    views : sequence of StereoView
+    placements : dict of int to MarkerPlacement
+    side : float
+        Marker side length [m].
+
+    Returns
+    -------
+    pose : ndarray, shape (4, 4)
+        Refined hand pose in the root frame.
+    rms : float
+        Root-mean-square reprojection error at the solution [px]; infinite if the solver failed
+        or a corner ended behind its camera.
+    """
+    from scipy.optimize import least_squares
+
+    t0 = np.asarray(root_T_hand0, dtype=float)
+    obj_m = np.c_[marker_corners(side), np.ones(4)]
+    items = []
+    for v in views:
+        cam_T_root = np.linalg.inv(np.asarray(v.root_T_cam, dtype=float))
+        dist = np.zeros(5) if v.dist is None else np.asarray(v.dist, dtype=float).reshape(-1)
+        for m in v.markers:
+            obj = (placements[m.marker_id].hand_T_marker @ obj_m.T).T[:, :3]
+            items.append((cam_T_root, np.asarray(v.k, dtype=float), dist, obj, np.asarray(m.corners, float).reshape(-1, 2)))
+    if not items:
+        raise ValueError('refine_stereo: no marker corners to refine on')
+
+    def pose(x: NDArray[np.float64]) -> NDArray[np.float64]:
+        # Left perturbation in the root frame: the same tangent space as the published covariance.
+        t = np.eye(4)
+        t[:3, :3] = Rotation.from_rotvec(x[:3]).as_matrix() @ t0[:3, :3]
+        t[:3, 3] = t0[:3, 3] + x[3:]
+        return t
+
+    def residuals(x: NDArray[np.float64]) -> NDArray[np.float64]:
+        t = pose(x)
+        out = []
+        for cam_T_root, k, dist, obj, uv in items:
+            c = cam_T_root @ t
+            rvec = cv2.Rodrigues(c[:3, :3])[0]
+            proj = cv2.projectPoints(obj, rvec, c[:3, 3], k, dist)[0].reshape(-1, 2)
+            out.append((proj - uv).ravel())
+        return np.concatenate(out)
+
+    try:
+        sol = least_squares(residuals, np.zeros(6), method='lm', x_scale=np.r_[1e-2, 1e-2, 1e-2, 1e-3, 1e-3, 1e-3])
+    except (ValueError, cv2.error):
+        return t0, float('inf')
+    t = pose(sol.x)
+    depths = [(cam_T_root @ t @ np.c_[obj, np.ones(len(obj))].T)[2] for cam_T_root, _, _, obj, _ in items]
+    if not sol.success or not np.all(np.isfinite(sol.fun)) or min(float(d.min()) for d in depths) <= 0:
+        return t0, float('inf')
+    return t, float(np.sqrt(np.mean(sol.fun ** 2)))
+
+
 class HandPoseEstimator:
     """Image of one eye -> accepted marker poses -> one hand pose in the root frame.
 
@@ -604,4 +696,38 @@ class HandPoseEstimator:
         poses = [gate_marker(p, self.config) for p in self.marker_poses(gray, k, dist)]
         hand = self.combine(poses, k, dist, root_T_cam)
         return FrameResult(markers=[p for p in poses if p.ok], rejected=[p for p in poses if not p.ok],
-                           hand=hand, seconds=time.perf_counter() - t0)
+                           hand=hand, seconds=time.perf_counter() - t0, k=k,
+                           dist=None if dist is None else np.asarray(dist, dtype=float))
+
+    def stereo(self, views: Sequence[tuple[FrameResult, ArrayLike]]) -> HandEstimate:
+        """One hand estimate from the same stamp's results of several eyes, each with its hand.
+
+        The eyes' poses fused (:func:`fuse_estimates`) start :func:`refine_stereo` over all their
+        accepted markers' corners; its covariance is :func:`body_schema.noise.stereo_covariance`
+        of the eyes' ones. If the refinement fails or its RMS reprojection error exceeds the
+        gate's ``max_reprojection_error_px`` (the eyes disagree, e.g. one saw a planar flip), the
+        fused poses are returned instead.
+
+        Parameters
+        ----------
+        views : sequence of (FrameResult, root_T_cam)
+            Results with a hand, judged with a camera matrix (``k``); ``root_T_cam`` shape (4, 4).
+
+        Raises
+        ------
+        ValueError
+            For fewer than two views, a view without a hand or without its camera matrix.
+        """
+        if len(views) < 2:
+            raise ValueError(f'stereo needs at least two eyes\' results, got {len(views)}')
+        if any(r.hand is None or r.k is None for r, _ in views):
+            raise ValueError('stereo needs every eye\'s result with a hand and its camera matrix (k)')
+        hands = [r.hand for r, _ in views]
+        fused = fuse_estimates(hands)
+        pose, rms = refine_stereo(fused.pose, [StereoView(np.asarray(t, dtype=float), r.k, r.dist, r.markers)
+                                               for r, t in views], self.placements, self.side)
+        if not rms <= self.config.max_reprojection_error_px:
+            return fused
+        cov = stereo_covariance(np.stack([h.covariance for h in hands]), self.noise)
+        return HandEstimate(pose, cov, fused.marker_ids, fused.pos_var * self.noise.stereo_pos,
+                            fused.rot_var * self.noise.stereo_rot)

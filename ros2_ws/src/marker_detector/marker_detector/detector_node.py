@@ -20,7 +20,10 @@ transient local so the latched pose reaches a late joiner)
 Publishes (reliable, depth 10)
 ------------------------------
 ``/hand_pose`` (geometry_msgs/PoseWithCovarianceStamped): hand frame in root_link, stamp = image
-stamp, 6x6 covariance (x y z rotX rotY rotZ, row-major) from the noise model; only on success.
+stamp, 6x6 covariance (x y z rotX rotY rotZ, row-major) from the noise model; only on success. With
+both eyes, a stamp both see gives one pose refined on both images' corners
+(:meth:`~marker_detector.detection.HandPoseEstimator.stereo`; covariance
+:func:`body_schema.noise.stereo_covariance`), a stamp one eye sees that eye's.
 ``/markers`` (geometry_msgs/PoseArray): every judged frame, the accepted marker poses in the
 camera frame (frame_id and stamp of the image); an empty array is an explicit failed detection
 (a valid frame without the hand). A frame that cannot be judged (bad image, unusable or missing
@@ -85,8 +88,8 @@ class DetectorNodeSettings:
     """The detector node's own parameters (the rest: noise settings and DetectorConfig)."""
 
     robot: str = setting('icub_right_arm', 'Packaged robot name or path of a robot YAML')
-    use_right_eye: bool = setting(False, 'Also process the right eye and fuse the pair (a robot with eyes; '
-                                  'ignored for a fixed camera)')
+    use_right_eye: bool = setting(False, 'Also process the right eye: a stamp both eyes see gives one hand pose '
+                                  'from both images\' marker corners (a robot with eyes; ignored for a fixed camera)')
     stereo_timeout: float = setting(0.5, 'Seconds one eye waits for the other eye of the same stamp', (0.0, 10.0))
     transport: str = setting('raw', 'Image transport: raw (camera/<eye>/image_raw, sensor_msgs/Image) or compressed '
                              '(camera/<eye>/image_raw/compressed, JPEG or PNG)', choices=IMAGE_TRANSPORTS)
@@ -265,7 +268,7 @@ class DetectorNode(Node):
     def _publish(self, entry: dict[str, EyeResult]) -> None:
         # /markers is expressed in the left camera frame (the right eye's too), so one message
         # per stereo pair tells the selector whether the attempt succeeded.
-        header, marker_poses, hand = combine(entry)
+        header, marker_poses, hand = combine(entry, estimator=self.estimator)
         status = pair_status(entry)
         self._diagnose(header, status, entry)
         if status is FrameStatus.BAD_INPUT:

@@ -3,8 +3,8 @@
 With both eyes, the detector publishes one ``/markers`` and at most one ``/hand_pose`` per image
 stamp: :class:`StereoPairer` holds one eye's result until the other eye's result of the same stamp
 arrives, or until ``timeout`` seconds pass (the other eye's frame was lost), and
-:func:`combine` expresses every accepted marker in the reference eye's camera frame and fuses the
-eyes' hand estimates. Times are passed in, so the pairing is tested without a clock.
+:func:`combine` expresses every accepted marker in the reference eye's camera frame and makes one
+hand estimate of the eyes' (from all their marker corners at once, given the estimator). Times are passed in, so the pairing is tested without a clock.
 """
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 
 from calibration_interfaces.outcome import FrameStatus
 
-from .detection import FrameResult, HandEstimate, fuse_estimates
+from .detection import FrameResult, HandEstimate, HandPoseEstimator, fuse_estimates
 
 __all__ = ['EyeResult', 'StereoPairer', 'combine', 'pair_status']
 
@@ -75,8 +75,8 @@ class StereoPairer:
         return [self.pending.pop(k) for k in keys]
 
 
-def combine(entry: Mapping[str, EyeResult], ref: str = 'left') -> tuple[Any, list[NDArray[np.float64]],
-                                                                         HandEstimate | None]:
+def combine(entry: Mapping[str, EyeResult], ref: str = 'left', estimator: HandPoseEstimator | None = None
+            ) -> tuple[Any, list[NDArray[np.float64]], HandEstimate | None]:
     """What one stamp's results publish.
 
     Parameters
@@ -84,6 +84,9 @@ def combine(entry: Mapping[str, EyeResult], ref: str = 'left') -> tuple[Any, lis
     entry : mapping of eye name to EyeResult
     ref : str
         The eye whose camera frame ``/markers`` uses (another eye if it is missing).
+    estimator : HandPoseEstimator, optional
+        When several eyes found the hand: one estimate from all their corners
+        (:meth:`HandPoseEstimator.stereo`); without it, their poses fused as independent.
 
     Returns
     -------
@@ -96,16 +99,19 @@ def combine(entry: Mapping[str, EyeResult], ref: str = 'left') -> tuple[Any, lis
     """
     ref = ref if ref in entry else next(iter(entry))
     ref_pose = entry[ref].root_T_cam
-    markers, hands = [], []
+    markers, seen = [], []
     for item in entry.values():
         to_ref = np.eye(4)
         if item.eye != ref and item.root_T_cam is not None and ref_pose is not None:
             to_ref = np.linalg.inv(ref_pose) @ item.root_T_cam
         markers.extend(to_ref @ m.cam_T_marker for m in item.result.markers)
         if item.result.hand is not None:
-            hands.append(item.result.hand)
-    hand = (fuse_estimates(hands) if len(hands) > 1 else hands[0]) if hands else None
-    return entry[ref].header, markers, hand
+            seen.append(item)
+    if len(seen) < 2:
+        return entry[ref].header, markers, seen[0].result.hand if seen else None
+    if estimator is not None and all(i.root_T_cam is not None and i.result.k is not None for i in seen):
+        return entry[ref].header, markers, estimator.stereo([(i.result, i.root_T_cam) for i in seen])
+    return entry[ref].header, markers, fuse_estimates([i.result.hand for i in seen])
 
 
 def pair_status(entry: Mapping[str, EyeResult]) -> FrameStatus:

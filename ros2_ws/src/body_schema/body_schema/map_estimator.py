@@ -32,7 +32,10 @@ model ``x_{k+1} = x_k + w_k``:
   estimate move to the new body quickly at no price on a body that does not change. Counting
   exceedances, not summing NIS, keeps a single gross detection error (a planar flip has NIS in the
   thousands) from passing for a change: a changed body makes the innovations large one after
-  another;
+  another. Exceedances at configurations closer than ``change_separation`` count once:
+  the same view gives the same detection error, so a selector that tries a spot again repeats the
+  evidence rather than adding to it (a cost-sensitive run tried one view three times, each 190
+  sigma off, and was derailed by the alarm);
 * an optional sliding window: beyond ``window`` observations the oldest is folded into the
   Gaussian prior (linearised at the current solution), bounding the cost of an update.
 
@@ -214,7 +217,8 @@ class MapSettings:
         Chi-square probability (6 dof) an innovation's NIS must exceed to count towards a change;
         0 disables change detection.
     change_window, change_count : int
-        A change is declared when ``change_count`` of the last ``change_window`` NIS exceed it.
+        A change is declared when ``change_count`` of the last ``change_window`` NIS exceed it,
+        at ``change_count`` distinct configurations (see ``change_separation``).
         3 of 4: a detector whose errors cross the 99.99 % bound a fraction ``e`` of the time
         raises a false alarm with probability about ``4 e^3`` per update (``3 e^2`` for 2 of 3);
         the simulated ArUco detector at 1.7 m has ``e`` near 4 % (``tools.fit_noise``), where
@@ -227,6 +231,9 @@ class MapSettings:
         does not vanish for large residuals; a redescending loss such as Cauchy would dismiss
         every early observation as an outlier) and the change test does not fire (measured on
         rendered runs: the only false alarms fell at observations 4-5).
+    change_separation : float
+        Two exceedances of the change test whose largest joint difference is below this [rad] are
+        at the same configuration and count once (0: every exceedance counts).
     jump_length, jump_angle : float
         Standard deviation of the jump added when a change is detected [m], [rad].
     covariance : str
@@ -259,6 +266,7 @@ class MapSettings:
     change_probability: float = 0.9999
     change_window: int = 4
     change_count: int = 3
+    change_separation: float = float(np.radians(1.0))
     warmup: int = 10
     jump_length: float = 0.01
     jump_angle: float = float(np.radians(3.0))
@@ -293,6 +301,8 @@ class MapSettings:
             raise ValueError(f'restart_after must be >= 0, got {self.restart_after}')
         if self.warmup < 0:
             raise ValueError(f'warmup must be >= 0, got {self.warmup}')
+        if not (np.isfinite(self.change_separation) and self.change_separation >= 0):
+            raise ValueError(f'change_separation must be finite and >= 0 [rad], got {self.change_separation}')
         if not 1 <= self.change_count <= self.change_window:
             raise ValueError(f'change_count must be in [1, change_window={self.change_window}], '
                              f'got {self.change_count}')
@@ -464,6 +474,7 @@ class MapEstimator:
         self.n_restarts = 0
         self.outlier_run = 0                      # consecutive outliers, for the restart
         self._recent_nis: list[float] = []
+        self._recent_q: list[NDArray[np.float64]] = []    # the configurations of _recent_nis
 
     # ------------------------------------------------------------------------------------------
     # Model
@@ -556,6 +567,17 @@ class MapEstimator:
             self._restore(saved)
             raise
 
+    def _distinct_exceedances(self, beyond: list[bool]) -> int:
+        """How many of the recent exceedances lie at distinct configurations: each one counts
+        unless an earlier exceedance in the window is closer than ``change_separation`` to it."""
+        sep = self.settings.change_separation
+        seen: list[NDArray[np.float64]] = []
+        for q, b in zip(self._recent_q, beyond):
+            # NaN configurations (an old checkpoint's) are never "the same": they count.
+            if b and not any(np.max(np.abs(q - o)) < sep for o in seen):
+                seen.append(q)
+        return len(seen)
+
     def _update(self, q: NDArray, pose: NDArray, R: NDArray) -> MapUpdate:  # noqa: N803
         s = self.settings
         # Random walk between observations: old evidence and the prior age by Q.
@@ -569,8 +591,9 @@ class MapEstimator:
         nis = float(y @ np.linalg.solve(S, y))
         change = False
         self._recent_nis = (self._recent_nis + [nis])[-s.change_window:]
+        self._recent_q = (self._recent_q + [q])[-s.change_window:]
         beyond = [v > self._change_bound for v in self._recent_nis]
-        if self.n_updates >= s.warmup and sum(beyond) >= s.change_count:
+        if self.n_updates >= s.warmup and self._distinct_exceedances(beyond) >= s.change_count:
             # The body changed: everything known so far (prior and stored observations) may be
             # off by a jump. The stored observations since the first exceedance are evidence of
             # the new body, so they are not aged.
@@ -579,7 +602,7 @@ class MapEstimator:
             self.drift[:old] += self._jump
             self.P_p = self.P_p + np.diag(self._jump)
             self.n_changes += 1
-            self._recent_nis = []
+            self._recent_nis, self._recent_q = [], []
             change = True
         self.qs = np.vstack([self.qs, q[None]])
         self.zs = np.concatenate([self.zs, pose[None]])
@@ -878,6 +901,7 @@ class MapEstimator:
         d: dict[str, object] = {k: np.copy(getattr(self, k)) for k in self._ARRAYS}
         d.update({k: getattr(self, k) for k in self._COUNTS})
         d['recent_nis'] = list(self._recent_nis)
+        d['recent_q'] = list(self._recent_q)
         d['last'] = self.last
         return d
 
@@ -885,12 +909,14 @@ class MapEstimator:
         for k in self._ARRAYS + self._COUNTS:
             setattr(self, k, d[k])
         self._recent_nis = list(d['recent_nis'])  # type: ignore[arg-type]
+        self._recent_q = list(d['recent_q'])  # type: ignore[arg-type]
         self.last = d['last']  # type: ignore[assignment]
 
     def state_dict(self) -> dict[str, NDArray]:
         """Arrays that restore this estimator exactly (for ``numpy.savez``)."""
         d = {f'map_{k}': np.asarray(getattr(self, k)) for k in self._ARRAYS + self._COUNTS}
         d['map_recent_nis'] = np.asarray(self._recent_nis, dtype=float)
+        d['map_recent_q'] = np.asarray(self._recent_q, dtype=float).reshape(len(self._recent_q), -1)
         return d
 
     def load_state_dict(self, d: dict[str, NDArray]) -> None:
@@ -903,5 +929,10 @@ class MapEstimator:
         for k in self._COUNTS:
             setattr(self, k, int(d.get(f'map_{k}', 0)))         # a checkpoint written before a count existed
         self._recent_nis = [float(v) for v in d['map_recent_nis']]
+        # A checkpoint written before the configurations were kept: each exceedance counts.
+        recent_q = d.get('map_recent_q')
+        self._recent_q = ([np.array(v, dtype=float) for v in recent_q] if recent_q is not None
+                          and len(recent_q) == len(self._recent_nis) else
+                          [np.full(self.qs.shape[1] if self.qs.size else 1, np.nan) for _ in self._recent_nis])
         self.last = None
 

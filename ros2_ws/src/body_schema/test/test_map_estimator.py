@@ -99,6 +99,36 @@ def test_one_gross_outlier_is_not_a_change(arm):
     assert est.n_changes == 0 and est.n_outliers == 1
 
 
+def test_the_same_wrong_view_three_times_is_not_a_change_three_views_are(arm):
+    """Exceedances at one configuration count once: the same view repeats its detection error."""
+    settings = MapSettings(warmup=0)
+    true, obs, _, _ = _run(arm, 8, 20, settings)
+    rng = np.random.default_rng(8)
+    qs = [obs[i].q for i in (1, 5, 9)]
+
+    def wrong(q):
+        z = arm.with_dh(true).forward_kinematics(q)
+        z[:3, 3] += 0.02                                   # 2 cm off: far beyond the bound
+        return z
+
+    def after(views):
+        est = _run(arm, 8, 20, settings)[2]
+        for q in views:
+            est.update(q + rng.uniform(-1e-3, 1e-3, q.shape), wrong(q), obs[0].R)
+        return est
+
+    assert after([qs[0]] * 3).n_changes == 0           # one view, tried three times (0.06 deg apart)
+    assert after(qs).n_changes == 1                    # three views: the body changed
+    assert after([qs[0]] * 3).n_outliers >= 1
+    # Every exceedance counts with the separation at 0 (the test as it was).
+    est = _run(arm, 8, 20, MapSettings(warmup=0, change_separation=0.0))[2]
+    for _ in range(3):
+        est.update(qs[0], wrong(qs[0]), obs[0].R)
+    assert est.n_changes == 1
+    with pytest.raises(ValueError, match='change_separation'):
+        MapSettings(change_separation=-1.0)
+
+
 def test_window_folds_old_observations_into_the_prior(arm):
     true, obs, full, _ = _run(arm, 4, 30)
     windowed = _run(arm, 4, 30, MapSettings(window=10))[2]

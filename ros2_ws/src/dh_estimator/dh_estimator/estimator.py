@@ -69,7 +69,7 @@ class EstimatorSettings:
     iterations : int
         EKF: linearisations per update (1: the paper's EKF; more: iterated EKF).
     loss, loss_scale, outlier_probability, window, change_probability, change_window,
-    jump_length, jump_angle, max_nfev :
+    change_separation_deg, jump_length, jump_angle, max_nfev :
         MAP: see :class:`body_schema.map_estimator.MapSettings`.
     same_config_tol : float
         Max-abs joint difference [rad] under which a configuration counts as the previous one.
@@ -104,6 +104,10 @@ class EstimatorSettings:
                                         'detection)', (0.0, 0.999999))
     change_window: int = setting(_MAP.change_window, 'MAP: innovations looked at by the change test', (1, 100))
     change_count: int = setting(_MAP.change_count, 'MAP: of those, how many must exceed for a change', (1, 100))
+    change_separation_deg: float = setting(float(np.degrees(_MAP.change_separation)),
+                                           'MAP: exceedances at configurations within this largest joint difference '
+                                           '[deg] count once towards a change (the same view repeats its '
+                                           'detection error)', (0.0, 180.0))
     warmup: int = setting(_MAP.warmup, 'MAP: updates with the Huber loss and no change test, while the estimate '
                                        'is still far from the truth', (0, 100000))
     jump_length: float = setting(_MAP.jump_length, 'MAP: standard deviation of a detected change for a, d [m]',
@@ -150,7 +154,8 @@ class EstimatorSettings:
                            outlier_probability=self.outlier_probability, max_nfev=self.max_nfev,
                            window=self.window, q_length=self.q_length, q_angle=self.q_angle,
                            change_probability=self.change_probability, change_window=self.change_window,
-                           change_count=self.change_count, warmup=self.warmup,
+                           change_count=self.change_count,
+                           change_separation=float(np.radians(self.change_separation_deg)), warmup=self.warmup,
                            jump_length=self.jump_length,
                            jump_angle=self.jump_angle, twins=self.twin_moves,
                            restart_after=self.restart_after,

@@ -526,8 +526,8 @@ def refine_stereo(root_T_hand0: ArrayLike, views: Sequence[StereoView], placemen
 
     Minimises the reprojection error of every accepted marker corner in every view over the hand
     pose in the root frame: one camera measures a marker's depth from its apparent size, two
-    cameras by triangulation over their baseline (on the iCub's eyes, 3.7 times lower position
-    error than fusing the eyes' poses; docs/marker_detector.md).
+    cameras by triangulation over their baseline (on the iCub's eyes, 0.33 mm median position
+    error against 0.82 mm for the eyes' poses fused: the package README's bench).
 
     Parameters
     ----------
@@ -556,7 +556,8 @@ def refine_stereo(root_T_hand0: ArrayLike, views: Sequence[StereoView], placemen
         dist = np.zeros(5) if v.dist is None else np.asarray(v.dist, dtype=float).reshape(-1)
         for m in v.markers:
             obj = (placements[m.marker_id].hand_T_marker @ obj_m.T).T[:, :3]
-            items.append((cam_T_root, np.asarray(v.k, dtype=float), dist, obj, np.asarray(m.corners, float).reshape(-1, 2)))
+            corners = np.asarray(m.corners, dtype=float).reshape(-1, 2)
+            items.append((cam_T_root, np.asarray(v.k, dtype=float), dist, obj, corners))
     if not items:
         raise ValueError('refine_stereo: no marker corners to refine on')
 

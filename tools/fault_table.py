@@ -65,8 +65,8 @@ class FaultRow:
     ended : bool
         The run finished within the deadline (False: it stalled, see ``note``).
     accepted_lost : int
-        Accepted observations the estimator made (up to the fault, for a kill) that the bag does
-        not hold.
+        Observations the estimator kept (accepted, or flagged as outliers and kept; up to the fault,
+        for a kill) whose verdicts the bag does not hold.
     silent_wrong : int
         Wrong answers without a failure signal (see the module docstring).
     outcomes : list of str
@@ -93,15 +93,16 @@ def _params(iterations: int = ITERATIONS) -> dict[str, dict[str, Any]]:
             'selector': {'strategy': 'random', 'iterations': iterations, 'seed': 1}}
 
 
-def _accepted_in_bag(bag: Path) -> tuple[int, str]:
-    """Accepted estimator verdicts the bag holds, read with the project's reader, and the reader's
+def _updates_in_bag(bag: Path) -> tuple[int, str]:
+    """Estimator verdicts of kept observations the bag holds (accepted, or flagged as outliers and
+    kept: what the estimator counts as updates), read with the project's reader, and the reader's
     complaint if it stopped early."""
     from calibration_interfaces.outcome import recorded_statuses
 
     n, err = 0, ''
     try:
         for status in recorded_statuses(bag, skip_malformed=True):
-            n += status.outcome.value == 'accepted'
+            n += status.outcome.value in ('accepted', 'outlier')
     except Exception as exc:  # noqa: BLE001 (what the reader does on a damaged bag is measured)
         err = f'{type(exc).__name__}: {exc}'
     return n, err
@@ -174,7 +175,7 @@ def run_kill(node: str, workdir: Path, domain_id: int | None = None) -> FaultRow
         alive = all(n.context.ok() for n in g.nodes.values())
         wrong = _silent_wrong(sim, est, sel, x0)
         g.close()
-    in_bag, err = _accepted_in_bag(bag)
+    in_bag, err = _updates_in_bag(bag)
     return FaultRow(f'kill {node} mid-run', 1, alive, sel.done, max(0, accepted_before - in_bag), wrong, outcomes,
                     fault_at, note + (f'; reader: {err}' if err else ''))
 
@@ -222,7 +223,7 @@ def run_kill_recorder_process(workdir: Path, domain_id: int | None = None) -> Fa
                 accepted_before = g.estimator.estimator.counters['updates']
                 fault_at = len(g.selector.planner.history)
                 deadline = time.monotonic() + 5.0
-                while _accepted_in_bag(bag)[0] < accepted_before and time.monotonic() < deadline:
+                while _updates_in_bag(bag)[0] < accepted_before and time.monotonic() < deadline:
                     time.sleep(0.05)      # nothing to spin: the recorder is another process
                 proc.send_signal(signal.SIGKILL)
                 proc.wait(10)
@@ -234,7 +235,7 @@ def run_kill_recorder_process(workdir: Path, domain_id: int | None = None) -> Fa
             proc.kill()
             proc.wait(10)
         log.close()
-    in_bag, err = _accepted_in_bag(bag)
+    in_bag, err = _updates_in_bag(bag)
     return FaultRow('kill recorder (SIGKILL, own process)', 1, alive, True, max(0, accepted_before - in_bag), 0, outcomes,
                     fault_at, f'recorder exit {proc.returncode}; bag {bag.stat().st_size if bag.exists() else 0} bytes'
                     + (f'; reader: {err}' if err else ''))
@@ -339,7 +340,7 @@ def _finish(g: Any, bag: Path, x0: np.ndarray, fault: str, injected: int, fault_
     updates = g.estimator.estimator.counters['updates']
     _drain(g)
     g.close()
-    in_bag, err = _accepted_in_bag(bag)
+    in_bag, err = _updates_in_bag(bag)
     return FaultRow(fault, injected, alive, True, max(0, updates - in_bag), wrong, outcomes, fault_at,
                     f'finished, {outcomes[fault_at:].count("accepted")} accepted after {what}'
                     + (f'; reader: {err}' if err else ''))
@@ -380,7 +381,7 @@ SCENARIOS: dict[str, Callable[[Path], FaultRow]] = {
 
 def markdown(rows: list[FaultRow]) -> str:
     """The fault table of docs/faults.md."""
-    lines = ['| fault | injected | nodes survived | run ended | accepted observations lost | silent wrong answers '
+    lines = ['| fault | injected | nodes survived | run ended | kept observations lost | silent wrong answers '
              '| outcomes before \\| after the fault; notes |', '|---|---:|---|---|---:|---:|---|']
     for r in rows:
         lines.append(f'| {r.fault} | {r.injected:,} | {"yes" if r.survived else "no"} | '

@@ -15,6 +15,15 @@ def raw():
     return yaml.safe_load(robot_path('icub_right_arm').read_text())
 
 
+def _bare(tmp_path, raw):
+    """The iCub's description without its noise_model block (loaded from its own file)."""
+    data = copy.deepcopy(raw)
+    data.pop('noise_model')
+    p = tmp_path / 'bare.yaml'
+    p.write_text(yaml.safe_dump(data))
+    return body_schema.load_robot(p)
+
+
 def _write(tmp_path, data):
     p = tmp_path / 'robot.yaml'
     p.write_text(yaml.safe_dump(data))
@@ -154,8 +163,11 @@ def test_fixed_camera_entries_are_validated():
 def test_a_fitted_noise_law_replaces_the_defaults_it_names(tmp_path, raw):
     from body_schema.noise import PoseDependentNoise
 
-    assert body_schema.load_robot('icub_right_arm').noise_law == {}      # the built-in fit is the iCub's
-    assert PoseDependentNoise.for_robot(body_schema.load_robot('icub_right_arm')) == PoseDependentNoise()
+    bare = _bare(tmp_path, raw)
+    assert bare.noise_law == {}                                          # without a block: the built-in fit
+    assert PoseDependentNoise.for_robot(bare) == PoseDependentNoise()
+    icub = PoseDependentNoise.for_robot(body_schema.load_robot('icub_right_arm'))   # its own, with stereo ratios
+    assert icub != PoseDependentNoise() and (icub.stereo_pos, icub.stereo_rot) == (0.099, 1.1)
     data = copy.deepcopy(raw)
     data['noise_model'] = {'a_pos': 3e-7, 'floor_rot': 1e-6}
     arm = body_schema.load_robot(_write(tmp_path, data))
@@ -175,7 +187,8 @@ def test_a_description_can_name_the_covariance_its_errors_need(tmp_path, raw):
     data['noise_model'] = {'a_pos': 3e-7, 'covariance': 'sandwich_hc3'}
     arm = body_schema.load_robot(_write(tmp_path, data))
     assert (arm.noise_law, arm.noise_covariance) == ({'a_pos': 3e-7}, 'sandwich_hc3')
-    assert body_schema.load_robot('icub_right_arm').noise_covariance == ''
+    bare = _bare(tmp_path, raw)
+    assert bare.noise_covariance == ''
     assert body_schema.load_robot('ur5e').noise_covariance == 'sandwich_hc3'
 
     def used(model, **kw):
@@ -183,7 +196,7 @@ def test_a_description_can_name_the_covariance_its_errors_need(tmp_path, raw):
         return est.map.settings.covariance
     assert used(arm) == 'sandwich_hc3'                                       # the description's
     assert used(arm, covariance='gauss_newton') == 'gauss_newton'            # a parameter wins
-    assert used(body_schema.load_robot('icub_right_arm')) == 'sandwich'      # none named: the default
+    assert used(bare) == 'sandwich'                                          # none named: the default
 
 
 def test_a_description_can_set_the_loss_scale_its_heavy_tailed_law_needs(tmp_path, raw):
@@ -194,14 +207,16 @@ def test_a_description_can_set_the_loss_scale_its_heavy_tailed_law_needs(tmp_pat
     data['noise_model'] = {'a_pos': 3e-7, 'loss_scale': 1.2}
     arm = body_schema.load_robot(_write(tmp_path, data))
     assert (arm.noise_law, arm.noise_loss_scale) == ({'a_pos': 3e-7}, 1.2)
-    assert body_schema.load_robot('icub_right_arm').noise_loss_scale == 0.0
+    bare = _bare(tmp_path, raw)
+    assert bare.noise_loss_scale == 0.0
+    assert body_schema.load_robot('icub_right_arm').noise_loss_scale == 1.8
 
     def used(model, **kw):
         est = OnlineEstimator(model, model.dh, initial_covariance(model.n_joints), EstimatorSettings(**kw))
         return est.map.settings.loss_scale
     assert used(arm) == 1.2                                                  # the description's
     assert used(arm, loss_scale=2.5) == 2.5                                  # a parameter wins
-    assert used(body_schema.load_robot('icub_right_arm')) == 3.0             # none set: the default
+    assert used(bare) == 3.0                                                 # none set: the default
     for bad, words in ((0.05, 'must be in [0.1, 100]'), ('wide', 'must be a number')):
         data['noise_model'] = {'a_pos': 3e-7, 'loss_scale': bad}
         with pytest.raises(RobotDescriptionError, match=re.escape(f'noise_model.loss_scale: {words}')):

@@ -39,7 +39,7 @@ def test_two_methods_run_resume_and_report(tmp_path: Path) -> None:
         # The driver wrote the log the task returned.
         assert 'ROS_DOMAIN_ID' in (tmp_path / 'runs' / method / 'rep00.log').read_text()
         assert rows[0]['outcome'] == 'initial'
-        assert {r['outcome'] for r in rows[1:]} <= {'accepted', 'rejected', 'failed'}, rows
+        assert {r['outcome'] for r in rows[1:]} <= {'accepted', 'outlier', 'rejected', 'failed'}, rows
         movement = [float(r['movement_deg']) for r in rows]
         assert movement == sorted(movement) and movement[-1] > 0
         assert all(float(r['wall_s']) > 0 for r in rows[1:])
@@ -48,12 +48,17 @@ def test_two_methods_run_resume_and_report(tmp_path: Path) -> None:
     # Fair comparison: the same true robot and initial guess, hence the same initial error.
     assert runs['AL-CN'][0]['position_mm'] == runs['R'][0]['position_mm']
     assert float(runs['R'][0]['position_mm']) > 10.0
-    # The estimate moves exactly at the accepted updates (the table is scored when the iteration's
-    # record arrives, after its update); failed and rejected attempts leave it alone.
+    # The estimate moves at the accepted updates (the table is scored when the iteration's record
+    # arrives, after its update); failed and rejected attempts leave it alone. An observation
+    # flagged as an outlier is kept but pulls with a bounded weight: it may or may not move it.
     for method, rows in runs.items():
         moved = [rows[i]['position_mm'] != rows[i - 1]['position_mm'] for i in range(1, len(rows))]
-        assert moved == [r['outcome'] == 'accepted' for r in rows[1:]], (method, rows)
-    assert sum(r['outcome'] == 'accepted' for rows in runs.values() for r in rows) >= 1, runs
+        for m, r in zip(moved, rows[1:]):
+            if r['outcome'] in ('accepted', 'failed', 'rejected'):
+                assert m == (r['outcome'] == 'accepted'), (method, rows)
+    # At least one observation kept (the first ones can be flagged as outliers: the iCub's loss scale
+    # 1.8 lets a far initial guess resist them during the warm-up).
+    assert sum(r['outcome'] in ('accepted', 'outlier') for rows in runs.values() for r in rows) >= 1, runs
 
     combined = ex.read_rows(tmp_path / 'metrics.csv')
     assert len(combined) == 2 * (ITERATIONS + 1)

@@ -56,8 +56,8 @@ def test_two_methods_run_resume_and_report(tmp_path: Path) -> None:
         for m, r in zip(moved, rows[1:]):
             if r['outcome'] in ('accepted', 'failed', 'rejected'):
                 assert m == (r['outcome'] == 'accepted'), (method, rows)
-    # At least one observation kept (the first ones can be flagged as outliers: the iCub's loss scale
-    # 1.8 lets a far initial guess resist them during the warm-up).
+    # At least one observation kept (with the iCub's own noise law the first ones can be flagged as
+    # outliers from a far initial guess: docs/selector.md, "One detection from both images").
     assert sum(r['outcome'] in ('accepted', 'outlier') for rows in runs.values() for r in rows) >= 1, runs
 
     combined = ex.read_rows(tmp_path / 'metrics.csv')

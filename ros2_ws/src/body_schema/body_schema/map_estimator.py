@@ -916,7 +916,7 @@ class MapEstimator:
         """Arrays that restore this estimator exactly (for ``numpy.savez``)."""
         d = {f'map_{k}': np.asarray(getattr(self, k)) for k in self._ARRAYS + self._COUNTS}
         d['map_recent_nis'] = np.asarray(self._recent_nis, dtype=float)
-        d['map_recent_q'] = np.asarray(self._recent_q, dtype=float).reshape(len(self._recent_q), -1)
+        d['map_recent_q'] = np.array(self._recent_q, dtype=float).reshape(len(self._recent_q), self.qs.shape[1])
         return d
 
     def load_state_dict(self, d: dict[str, NDArray]) -> None:
@@ -933,6 +933,6 @@ class MapEstimator:
         recent_q = d.get('map_recent_q')
         self._recent_q = ([np.array(v, dtype=float) for v in recent_q] if recent_q is not None
                           and len(recent_q) == len(self._recent_nis) else
-                          [np.full(self.qs.shape[1] if self.qs.size else 1, np.nan) for _ in self._recent_nis])
+                          [np.full(self.qs.shape[1], np.nan) for _ in self._recent_nis])
         self.last = None
 

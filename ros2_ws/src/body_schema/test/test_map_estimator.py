@@ -175,6 +175,24 @@ def test_state_dict_round_trip_continues_identically(arm):
     np.testing.assert_array_equal(again.P, est.P)
 
 
+def test_state_dict_keeps_the_change_test_window_and_reads_an_older_checkpoint(arm):
+    """Fresh (nothing recent), mid-run (the recent exceedances' configurations) and a checkpoint
+    written before the configurations were kept (each exceedance then counts)."""
+    fresh = MapEstimator(arm.base, np.zeros(28), np.eye(28))
+    d = fresh.state_dict()
+    assert d['map_recent_q'].shape == (0, 7)
+    MapEstimator(arm.base, np.zeros(28), np.eye(28)).load_state_dict(d)
+    _, _, est, _ = _run(arm, 6, 8)
+    d = est.state_dict()
+    assert d['map_recent_q'].shape == (len(d['map_recent_nis']), 7) and len(d['map_recent_nis']) > 0
+    again = MapEstimator(arm.base, np.zeros(28), np.eye(28))
+    again.load_state_dict(d)
+    np.testing.assert_array_equal(np.array(again._recent_q), d['map_recent_q'])
+    old = {k: v for k, v in d.items() if k != 'map_recent_q'}
+    again.load_state_dict(old)
+    assert np.isnan(np.array(again._recent_q)).all() and len(again._recent_q) == len(d['map_recent_nis'])
+
+
 @pytest.mark.parametrize('kw, words', [({'loss': 'l2'}, 'loss'), ({'window': 1}, 'window'),
                                        ({'q_length': -1.0}, 'q_length'),
                                        ({'change_probability': 1.0}, 'change_probability'),

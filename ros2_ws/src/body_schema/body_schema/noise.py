@@ -201,8 +201,9 @@ class _Base:
                                         np.take_along_axis(vo, best, -1)[..., 0], los, k)
 
 
-#: The built-in law's stereo variance ratios (position, orientation): ``tools.fit_noise --robot
-#: icub_right_arm --n 300 --seed 1`` on the iCub's 320x240 eyes and 3 cm markers.
+#: The built-in law's stereo variance ratios (position, orientation): ``tools.fit_noise.stereo_ratios``
+#: against the built-in law, on 300 configurations of the iCub's box (seed 1, no pixel noise) seen by
+#: its 320x240 eyes with 3 cm markers.
 STEREO_POS, STEREO_ROT = 0.124, 1.40
 
 

@@ -4,7 +4,8 @@ With both eyes, the detector publishes one ``/markers`` and at most one ``/hand_
 stamp: :class:`StereoPairer` holds one eye's result until the other eye's result of the same stamp
 arrives, or until ``timeout`` seconds pass (the other eye's frame was lost), and
 :func:`combine` expresses every accepted marker in the reference eye's camera frame and makes one
-hand estimate of the eyes' (from all their marker corners at once, given the estimator). Times are passed in, so the pairing is tested without a clock.
+hand estimate of the eyes' (from all their marker corners at once, given the estimator). Times
+are passed in, so the pairing is tested without a clock.
 """
 from __future__ import annotations
 

@@ -32,9 +32,9 @@ from body_schema.markers import marker_corners
 from body_schema.noise import ConstantNoise, NoiseModel, PoseDependentNoise, view_geometry
 from body_schema.robot import ArmModel
 
-from marker_detector.detection import DetectorConfig, HandPoseEstimator, MarkerPose, gate_marker
+from marker_detector.detection import DetectorConfig, FrameResult, HandPoseEstimator, MarkerPose, gate_marker
 
-__all__ = ['FLIP_DEG', 'Frame', 'FrameScores', 'NoiseFit', 'collect', 'draw_scores', 'evaluate', 'fit_noise',
+__all__ = ['FLIP_DEG', 'Frame', 'FrameScores', 'NoiseFit', 'collect', 'draw_scores', 'evaluate', 'eye_result', 'fit_noise',
            'summarize', 'time_frames', 'binned']
 
 
@@ -163,6 +163,15 @@ def time_frames(frames: Sequence[Frame], estimator: HandPoseEstimator, repeats: 
             best = min(best, time.perf_counter() - t0)
         out.append(best)
     return np.array(out)
+
+
+def eye_result(frame: Frame, estimator: HandPoseEstimator) -> tuple[FrameResult, NDArray[np.float64]]:
+    """A stored frame gated and combined by ``estimator``, as the detector node holds one eye's
+    result of a stamp (accepted markers, hand or None, camera matrix), with the eye's camera pose:
+    one element of :meth:`HandPoseEstimator.stereo`'s ``views``."""
+    gated = [gate_marker(p, estimator.config) for p in frame.poses]
+    hand = estimator.combine(gated, frame.k, None, frame.root_T_cam)
+    return FrameResult(markers=[p for p in gated if p.ok], hand=hand, k=frame.k), frame.root_T_cam
 
 
 def evaluate(frames: Sequence[Frame], estimator: HandPoseEstimator, fusion: str | None = None) -> FrameScores:

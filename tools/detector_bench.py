@@ -18,9 +18,9 @@ from body_schema import load_robot
 from body_schema.noise import PoseDependentNoise
 from body_schema.sampling import uniform_configs
 
-from marker_detector.detection import DetectorConfig, FrameResult, HandPoseEstimator, fuse_estimates, gate_marker
-from tools.detector_accuracy import (FLIP_DEG, Frame, FrameScores, binned, collect, evaluate, fit_noise, summarize,
-                                     time_frames)
+from marker_detector.detection import DetectorConfig, HandPoseEstimator, fuse_estimates
+from tools.detector_accuracy import (FLIP_DEG, Frame, FrameScores, binned, collect, evaluate, eye_result, fit_noise,
+                                     summarize, time_frames)
 
 RES_LOW, RES_HIGH = (320, 240), (640, 480)
 TARGETS = {RES_LOW: (10.0, 3.0), RES_HIGH: (5.0, 1.5)}     # median pos [mm], rot [deg]
@@ -39,11 +39,8 @@ def _stereo_rows(left: list[Frame], right: list[Frame], est: HandPoseEstimator) 
                                                   'stereo (both images\' corners; published)': []}
     n_any, n_eye = 0, np.zeros(2, dtype=int)
     for fl, fr in zip(left, right):
-        hands, views = [], []
-        for f in (fl, fr):
-            gated = [gate_marker(p, est.config) for p in f.poses]
-            hands.append(est.combine(gated, f.k, None, f.root_T_cam))
-            views.append((FrameResult(markers=[p for p in gated if p.ok], hand=hands[-1], k=f.k), f.root_T_cam))
+        views = [eye_result(f, est) for f in (fl, fr)]
+        hands = [r.hand for r, _ in views]
         n_any += any(h is not None for h in hands)
         n_eye += [h is not None for h in hands]
         if any(h is None for h in hands):

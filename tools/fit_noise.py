@@ -45,9 +45,9 @@ from body_schema.noise import ConstantNoise, NoiseModel, PoseDependentNoise, ste
 from body_schema.robot import NOISE_LAW_KEYS, ArmModel, load_robot
 from body_schema.sampling import uniform_configs
 
-from marker_detector.detection import DetectorConfig, FrameResult, HandPoseEstimator, fuse_estimates, gate_marker
-from tools.detector_accuracy import (FLIP_DEG, Frame, FrameScores, NoiseFit, collect, evaluate, fit_noise, position_chi2,
-                                     summarize)
+from marker_detector.detection import DetectorConfig, HandPoseEstimator, fuse_estimates
+from tools.detector_accuracy import (FLIP_DEG, Frame, FrameScores, NoiseFit, collect, evaluate, eye_result, fit_noise,
+                                     position_chi2, summarize)
 
 __all__ = ['views_of', 'law_yaml', 'calibration_of', 'tails', 'typical_spread', 'loss_scale_for', 'shape', 'stereo_ratios',
            'main']
@@ -222,11 +222,7 @@ def stereo_ratios(frames: Sequence[Frame], law: PoseDependentNoise, model: ArmMo
     for pair in by_config.values():
         if set(pair) != {'left', 'right'}:
             continue
-        views = []
-        for f in (pair['left'], pair['right']):
-            gated = [gate_marker(p, est.config) for p in f.poses]
-            hand = est.combine(gated, f.k, None, f.root_T_cam)
-            views.append((FrameResult(markers=[p for p in gated if p.ok], hand=hand, k=f.k), f.root_T_cam))
+        views = [eye_result(pair[eye], est) for eye in ('left', 'right')]
         if any(r.hand is None for r, _ in views):
             continue
         truth = pair['left'].truth

@@ -297,6 +297,6 @@ class VisibilityPrior:
         rot_std = np.asarray(orientation_std_deg, dtype=float)[..., None]
         p_marker = (ndtr((limit - phi) / np.hypot(self.angle_softness_deg, rot_std))
                     * ndtr((inside - margin) / np.hypot(self.margin_softness, pos_std)))
-        p = 1.0 - np.prod(1.0 - p_marker, axis=-1)
+        p = 1.0 - np.multiply.reduce(1.0 - p_marker, axis=-1)                    # np.prod without its wrapper
         return self.floor + (self.ceiling - self.floor) * p
 

@@ -413,6 +413,21 @@ def test_stereo_visibility_is_either_eye_by_the_correlation(arm, box_configs):
     assert np.all(g > gain_mono - 1e-12) and np.all(g < fused.terms_batch(qs)[0] + 1e-12)
 
 
+@pytest.mark.parametrize('depth_ratio', [1.0, 4.0])
+def test_stereo_single_evaluation_equals_batched(arm, box_configs, learned_occlusion, depth_ratio):
+    # The local search evaluates one configuration at a time through the noise model's single-pose
+    # path and one stacked solve for the three outcomes; the Sobol batch through the batched path.
+    law = PoseDependentNoise(depth_ratio=depth_ratio)
+    _, stereo = _stereo(arm, box_configs, visibility=VisibilityPrior(arm.camera), noise=law,
+                        occlusion=learned_occlusion, occlusion_mode='gain')
+    qs = sampling.uniform_configs(arm.calibration_box, 64, 11)
+    batch = stereo.terms_batch(qs)
+    single = [stereo.terms_batch(q[None]) for q in qs]
+    for k in range(3):
+        np.testing.assert_allclose(batch[k], [s[k][0] for s in single], rtol=1e-12, atol=1e-15)
+    assert np.ptp(batch[0]) > 0 and np.ptp(batch[1]) > 0.1
+
+
 def test_stereo_cost_refuses_what_it_cannot_model(arm, box_configs):
     mono, stereo = _stereo(arm, box_configs)
     with pytest.raises(ValueError, match=r'camera_pose must have shape.*\(3, 4, 4\)'):

@@ -21,7 +21,7 @@ pose changes.
 """
 from __future__ import annotations
 
-import functools
+import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -34,13 +34,13 @@ from body_schema.robot import ArmModel
 from body_schema.urdf import FrameTransform, chain_transforms
 from calibration_interfaces.contract import ESTIMATE_FRAME_PREFIX, optical_frame
 
-from .mcap_writer import schema_text
 
 __all__ = ['TF_TYPE', 'TF_TOPIC', 'TF_STATIC_TOPIC', 'TfRecord', 'tf_message', 'encode_tf', 'TfBook']
 
 TF_TYPE = 'tf2_msgs/msg/TFMessage'
 TF_TOPIC = '/tf'
 TF_STATIC_TOPIC = '/tf_static'
+
 
 @dataclass(frozen=True)
 class TfRecord:
@@ -51,32 +51,59 @@ class TfRecord:
     log_time_ns: int
 
 
+def _pose_arrays(transforms: Sequence[FrameTransform]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Translations (T, 3) and quaternions ``x y z w`` (T, 4) of ``transforms``."""
+    mats = np.array([t.parent_T_child for t in transforms]).reshape(-1, 4, 4)
+    quats = Rotation.from_matrix(mats[:, :3, :3]).as_quat() if len(transforms) else np.zeros((0, 4))
+    return mats[:, :3, 3], quats
+
+
 def tf_message(transforms: Sequence[FrameTransform], stamp_ns: int) -> dict:
     """A ``tf2_msgs/msg/TFMessage`` as a plain dict (``geometry_msgs/TransformStamped`` each)."""
     sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
-    mats = np.array([t.parent_T_child for t in transforms]).reshape(-1, 4, 4)
-    quats = Rotation.from_matrix(mats[:, :3, :3]).as_quat() if len(transforms) else np.zeros((0, 4))
+    xyz, quats = _pose_arrays(transforms)
     return {'transforms': [
         {'header': {'stamp': {'sec': sec, 'nanosec': nanosec}, 'frame_id': t.parent},
          'child_frame_id': t.child,
-         'transform': {'translation': dict(zip('xyz', m[:3, 3].tolist())),
+         'transform': {'translation': dict(zip('xyz', p.tolist())),
                        'rotation': dict(zip('xyzw', qt.tolist()))}}
-        for t, m, qt in zip(transforms, mats, quats)]}
+        for t, p, qt in zip(transforms, xyz, quats)]}
 
 
-@functools.cache
-def _encoder():
-    # mcap-ros2-support's dynamic CDR serializer (what its own writer uses), driven by the
-    # standard definition: the bytes are what a tf2_msgs publisher would send.
-    from mcap_ros2._dynamic import serialize_dynamic
+#: CDR encapsulation header: plain CDR, little-endian (what Fast DDS sends).
+_CDR_LE = b'\x00\x01\x00\x00'
+_U32, _STAMP, _POSE = struct.Struct('<I'), struct.Struct('<iI'), struct.Struct('<7d')
 
-    encoders = serialize_dynamic(TF_TYPE, schema_text(TF_TYPE))
-    return encoders.get(TF_TYPE) or encoders['tf2_msgs/TFMessage']
+
+def _align(buf: bytearray, n: int) -> None:
+    """Pad ``buf`` to a multiple of ``n`` bytes after the encapsulation header (CDR alignment)."""
+    buf += bytes(-(len(buf) - len(_CDR_LE)) % n)
 
 
 def encode_tf(transforms: Sequence[FrameTransform], stamp_ns: int) -> bytes:
-    """CDR bytes of the TFMessage of ``transforms`` stamped ``stamp_ns``."""
-    return bytes(_encoder()(tf_message(transforms, stamp_ns)))
+    """CDR bytes of the TFMessage of ``transforms`` stamped ``stamp_ns``.
+
+    Written directly (strings length-prefixed and NUL-terminated, each field aligned to its size):
+    the recorder encodes one at every joint state, and mcap-ros2-support's dynamic serializer
+    (field by field in Python) took 0.38 ms for the iCub's 14 moving transforms, this 0.16 ms
+    (36 static ones: 0.78 -> 0.23 ms). The test checks the bytes against that serializer, driven
+    by the standard definition: they are what a tf2_msgs publisher would send.
+    """
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    xyz, quats = _pose_arrays(transforms)
+    stamp = _STAMP.pack(sec, nanosec)
+    buf = bytearray(_CDR_LE)
+    buf += _U32.pack(len(transforms))
+    for t, p, qt in zip(transforms, xyz, quats):
+        _align(buf, 4)
+        buf += stamp
+        for name in (t.parent, t.child):
+            text = name.encode() + b'\x00'
+            _align(buf, 4)
+            buf += _U32.pack(len(text)) + text
+        _align(buf, 8)
+        buf += _POSE.pack(*p, *qt)
+    return bytes(buf)
 
 
 class TfBook:

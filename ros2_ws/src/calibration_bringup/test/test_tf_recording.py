@@ -3,12 +3,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from mcap_ros2._dynamic import generate_dynamic
+from mcap_ros2._dynamic import generate_dynamic, serialize_dynamic
 from scipy.spatial.transform import Rotation
 
 from body_schema.robot import load_robot
 from calibration_bringup.mcap_writer import schema_text
-from calibration_bringup.tf_recording import TF_STATIC_TOPIC, TF_TOPIC, TF_TYPE, TfBook
+from body_schema.urdf import FrameTransform
+from calibration_bringup.tf_recording import TF_STATIC_TOPIC, TF_TOPIC, TF_TYPE, TfBook, encode_tf, tf_message
 
 ROBOT = load_robot()
 
@@ -41,6 +42,23 @@ def test_schema_is_the_standard_definition() -> None:
     text = schema_text(TF_TYPE)
     assert text.startswith('geometry_msgs/TransformStamped[] transforms\n')
     assert 'MSG: geometry_msgs/TransformStamped' in text and 'MSG: std_msgs/Header' in text
+
+
+@pytest.mark.parametrize('count', [0, 1, 5])
+def test_encoding_is_mcap_ros2s_byte_for_byte(count: int) -> None:
+    # Frame names of every length modulo 4 (string padding) and stamps with large seconds.
+    rng = np.random.default_rng(count)
+    transforms = []
+    for k in range(count):
+        pose = np.eye(4)
+        pose[:3, :3] = Rotation.random(random_state=k).as_matrix()
+        pose[:3, 3] = rng.normal(size=3)
+        transforms.append(FrameTransform('p' * (k + 1), 'child_' + 'c' * k, pose))
+    stamp = 1_795_811_022_052_422_767 + count
+    reference = serialize_dynamic(TF_TYPE, schema_text(TF_TYPE))[TF_TYPE](tf_message(transforms, stamp))
+    assert encode_tf(transforms, stamp) == bytes(reference)
+    decoded = _decode(encode_tf(transforms, stamp))
+    assert [t.child_frame_id for t in decoded.transforms] == [t.child for t in transforms]
 
 
 def test_tree_reaches_both_hands_and_cameras_and_statics_follow_changes() -> None:

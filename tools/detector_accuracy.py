@@ -34,8 +34,8 @@ from body_schema.robot import ArmModel
 
 from marker_detector.detection import DetectorConfig, FrameResult, HandPoseEstimator, MarkerPose, gate_marker
 
-__all__ = ['FLIP_DEG', 'Frame', 'FrameScores', 'NoiseFit', 'collect', 'draw_scores', 'evaluate', 'eye_result', 'fit_noise',
-           'summarize', 'time_frames', 'binned']
+__all__ = ['FLIP_DEG', 'Frame', 'FrameScores', 'NoiseFit', 'collect', 'draw_scores', 'evaluate', 'eye_result',
+           'fit_noise', 'summarize', 'time_frames', 'binned']
 
 
 @dataclass

@@ -7,8 +7,8 @@ from mcap_ros2._dynamic import generate_dynamic, serialize_dynamic
 from scipy.spatial.transform import Rotation
 
 from body_schema.robot import load_robot
-from calibration_bringup.mcap_writer import schema_text
 from body_schema.urdf import FrameTransform
+from calibration_bringup.mcap_writer import schema_text
 from calibration_bringup.tf_recording import TF_STATIC_TOPIC, TF_TOPIC, TF_TYPE, TfBook, encode_tf, tf_message
 
 ROBOT = load_robot()

@@ -2,9 +2,11 @@
 
 One SingleThreadedExecutor, its own context and domain id. Ten AL iterations must each end in
 exactly one outcome, and the estimate's average position error (against the simulated robot's
-real table) must drop at least threefold from the initial guess. The same loop on what real
+real table) must drop at least threefold from the initial guess, and each eye's own verdicts
+must reach the selector's per-eye occlusion models. The same loop on what real
 cameras send: image_transport's compressed topic (JPEG) and a Bayer camera.
 """
+import numpy as np
 import pytest
 
 from body_schema.metrics import PoseErrorEvaluator
@@ -17,7 +19,8 @@ ITERATIONS = 10
 def test_ten_al_iterations_close_the_loop(ros):
     with InProcessGraph(ros.context, ros.executor, {
             'sim': {'perturb_seed': 7}, 'estimator': {'initial_seed': 3},
-            'selector': {'strategy': 'al', 'iterations': ITERATIONS, 'max_evals': 300}}) as graph:
+            'selector': {'strategy': 'al', 'iterations': ITERATIONS, 'max_evals': 300,
+                         'occlusion_per_eye': True}}) as graph:
         sim, est, sel = graph.sim, graph.estimator, graph.selector
         x0 = est.estimator.dh.copy()
         ros.spin_until(lambda: sel.done, 240.0, f'{ITERATIONS} AL iterations')
@@ -26,6 +29,18 @@ def test_ten_al_iterations_close_the_loop(ros):
         assert [a.iteration for a in history] == list(range(1, ITERATIONS + 1))
         outcomes = [a.outcome for a in history]
         assert set(outcomes) <= {'accepted', 'rejected', 'failed'}, outcomes   # none timed out or stuck
+        # Both eyes (the default) with per-eye occlusion models: each eye's verdict on an attempt's frame reached its own
+        # occlusion model (an eye whose image missed the pairing is not judged), and the pair saw
+        # the hand exactly when one of the eyes did.
+        tried, pair = sel.planner.occlusion.attempts
+        assert len(pair) == len(history)
+        seen_by = [[] for _ in pair]
+        for eye in ('left', 'right'):
+            q, seen = sel.planner.eye_occlusion[eye].attempts
+            assert len(seen) >= len(pair) - 2, (eye, seen, pair)
+            for qk, sk in zip(q, seen):
+                seen_by[int(np.flatnonzero((tried == qk).all(axis=1))[0])].append(bool(sk))
+        assert [any(s) for s in seen_by] == pair.tolist(), (seen_by, pair)
         counters = est.estimator.counters
         assert counters['updates'] == outcomes.count('accepted')
         assert counters['updates'] >= ITERATIONS // 2

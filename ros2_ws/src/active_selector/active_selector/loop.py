@@ -8,6 +8,8 @@ states (:meth:`~CalibrationLoop.joint_state`) show when the arm has settled at t
 ``failed``); a frame the detector could not judge (:meth:`~CalibrationLoop.bad_frame`: bad image
 or camera_info) decides nothing, the loop waits for the next one, and if only such frames come
 before the timeout the iteration ends ``bad_input``, which does not teach the occlusion model;
+each eye's own verdict on that frame (:meth:`~CalibrationLoop.eye_verdicts`, from the detector's
+diagnostics) goes with it to the planner's per-eye occlusion models;
 if the hand was seen, the estimator's verdict for this configuration
 (:meth:`~CalibrationLoop.estimator_outcome`: ``accepted``, ``outlier`` or ``rejected``, on an
 image taken after the iteration's command) ends the iteration.
@@ -184,11 +186,17 @@ class CalibrationLoop:
         self.resent = False
         self.t_settled = 0.0
         self.detected: bool | None = None
+        self.frame_stamp: float | None = None   # the frame that decided ``detected`` ...
+        self.frame_eyes: dict[str, bool] | None = None   # ... and each eye's verdict on it, once known
         self.bad_frames = 0                 # frames after settling the detector could not judge
         self.bad_reason = ''
         # Recent estimator verdicts (outcome, joints, message, image stamp or None): a verdict may
         # come before the frame.
         self._outcomes: deque[tuple[Outcome, NDArray[np.float64], str, float | None]] = deque(maxlen=50)
+        # Recent frames' per-eye verdicts (stamp, {eye: seen}): they may come before or after the frame.
+        self._eye_verdicts: deque[tuple[float, dict[str, bool]]] = deque(maxlen=50)
+        # A seen attempt recorded before its frame's per-eye verdicts came (stamp, reached joints).
+        self._late: tuple[float, NDArray[np.float64]] | None = None
         self._last_now = -np.inf            # the last clock reading (a jump back re-bases the times)
 
     @property
@@ -242,7 +250,7 @@ class CalibrationLoop:
         self.phase = Phase.MOVING
         self.t_command = self._now()
         self.q_command, self.resent = self.q.copy(), False
-        self.detected = None
+        self.detected = self.frame_stamp = self.frame_eyes = None
         self.bad_frames, self.bad_reason = 0, ''
         self._check_settled()
         return self.target
@@ -257,10 +265,29 @@ class CalibrationLoop:
         if self.phase is Phase.AWAITING_OUTCOME and self.detected is None \
                 and t >= self.t_settled + self.settings.settle_time:
             self.detected = bool(detected)
+            self.frame_stamp = float(t)
+            self.frame_eyes = next((e for te, e in reversed(self._eye_verdicts) if self._same_frame(te)), None)
             if not self.detected:
                 return self._finish(Outcome.FAILED, 'no marker detected after settling')
             return self._match_outcome()
         return None
+
+    def eye_verdicts(self, t: float, eyes: dict[str, bool]) -> None:
+        """Whether each eye saw the hand in the frame stamped ``t`` (an eye not named was not
+        judged); the planner's per-eye occlusion models learn them with the attempt that frame decides."""
+        eyes = {str(k): bool(v) for k, v in eyes.items()}
+        if self._late is not None and abs(t - self._late[0]) < 1e-6:
+            self.planner.learn_eyes(self._late[1], eyes)     # the attempt ended on its frame and verdict
+            self._late = None
+        elif self._same_frame(t):
+            self.frame_eyes = eyes              # after the frame that decided the attempt
+        else:
+            self._eye_verdicts.append((float(t), eyes))      # perhaps before the frame
+
+    def _same_frame(self, t: float) -> bool:
+        """Whether ``t`` stamps the frame that decided the attempt."""
+        # The stamps come through different messages (a header, a '%.9f' string): equal to a nanosecond.
+        return self.frame_stamp is not None and abs(t - self.frame_stamp) < 1e-6
 
     def bad_frame(self, t: float, reason: str) -> bool:
         """A frame stamped ``t`` the detector could not judge (``reason``): not evidence either way.
@@ -385,8 +412,11 @@ class CalibrationLoop:
         reached = self.reached if settled else self.q.copy()
         sel = self.selection
         source = '' if sel is None else ('pose_list' if sel.optimizer.startswith('pose_list') else sel.optimizer)
+        eyes = self.frame_eyes
+        self._late = (self.frame_stamp, reached) if self.detected and eyes is None else None
         a = self.planner.record(self.target, reached, outcome, self.detected, self.selection_seconds,
-                                0 if sel is None else sel.refused, 0 if sel is None else sel.refused_paths, source)
+                                0 if sel is None else sel.refused, 0 if sel is None else sel.refused_paths, source,
+                                eyes)
         move_s = (self.t_settled if settled else now) - self.t_command
         outcome_s = now - self.t_settled if settled else 0.0
         record = {'iteration': a.iteration, 'strategy': self.planner.strategy.value, 'outcome': outcome.value,
@@ -396,6 +426,7 @@ class CalibrationLoop:
                   'move_sim_s': move_s, 'outcome_sim_s': outcome_s, 'sim_time': now,
                   'source': source, 'collision_check': self.planner.safety is not None,
                   'refused': a.refused, 'refused_paths': a.refused_paths,
-                  'safety_s': 0.0 if sel is None else sel.safety_seconds, 'command_s': self.duration}
+                  'safety_s': 0.0 if sel is None else sel.safety_seconds, 'command_s': self.duration,
+                  'eyes': eyes}
         self.phase = Phase.DONE if a.iteration >= self.settings.iterations else Phase.WAITING
         return Iteration(a, why, move_s, outcome_s, now, record)

@@ -1,7 +1,7 @@
 """What the selector decides, without ROS: next target, occlusion learning, movement accounting.
 
 :class:`Planner` holds one strategy (R, AL, UCSAL, CCSAL), the occlusion model it learns from
-attempt outcomes, the noise model it uses to predict ``R(theta)``, and the history of visited
+attempt outcomes (with two eyes also one per eye, from each eye's own verdict), the noise model it uses to predict ``R(theta)``, and the history of visited
 configurations. With a collision model it never selects a configuration inside the margins nor one
 whose straight joint-space path from where the arm is leaves them (refusals are counted per
 selection). A list of poses (reviewed from a plan, or taught by hand) is visited first, each
@@ -12,6 +12,7 @@ testable in plain Python.
 from __future__ import annotations
 
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -79,6 +80,9 @@ class PlannerSettings:
                                      '0 independent .. 1 nested; P(both see) = c min(p_l, p_r) + (1 - c) p_l p_r '
                                      '(iCub: 0.38 over uniform configurations, tools.detector_bench; 0.59 over the attempts AL makes, '
                                      'tools.visibility_attempts)', (0.0, 1.0))
+    occlusion_per_eye: bool = setting(False, 'Stereo (use_right_eye): learn where each eye sees the hand (one '
+                                      "occlusion model per eye, from the detector's per-eye verdicts) and plan "
+                                      'the chance that either does; false: one model of whether the pair saw it')
 
     def __post_init__(self) -> None:
         if self.occlusion_prior not in OCCLUSION_PRIORS:
@@ -124,6 +128,10 @@ class Planner:
     safety : SafetyCheck, optional
         A :class:`body_schema.collision.CollisionModel`: no target inside its margins, no path
         from where the arm is that leaves them.
+    eyes : tuple of str
+        Names of the cameras whose poses :meth:`select` receives, in order (``('left', 'right')``
+        for a stereo pair). With two and ``settings.occlusion_per_eye``, :attr:`eye_occlusion`
+        holds one occlusion model per eye, and :meth:`record` feeds each its eye's verdict.
     """
 
     model: ArmModel
@@ -132,12 +140,21 @@ class Planner:
     history: list[Attempt] = field(default_factory=list)
     extrinsics: Extrinsics | None = None
     safety: SafetyCheck | None = None
+    eyes: tuple[str, ...] = ('left',)
 
     def __post_init__(self) -> None:
         box = self.model.calibration_box
         self.selector = JointSelector(box, self.settings.selector)
         self.occlusion = OcclusionModel(box, self.settings.occlusion_length_scale,
                                         self.settings.occlusion_a0, self.settings.occlusion_b0)
+        if not 1 <= len(self.eyes) <= 2 or len(set(self.eyes)) != len(self.eyes):
+            raise ValueError(f'eyes must name one camera or two different ones, got {self.eyes}')
+        #: One occlusion model per eye (a stereo pair with ``occlusion_per_eye``), else empty.
+        self.eye_occlusion: dict[str, OcclusionModel] = {}
+        if len(self.eyes) == 2 and self.settings.occlusion_per_eye:
+            self.eye_occlusion = {eye: OcclusionModel(box, self.settings.occlusion_length_scale,
+                                                      self.settings.occlusion_a0, self.settings.occlusion_b0)
+                                  for eye in self.eyes}
         self.visibility = None
         if self.settings.occlusion_prior == 'geometric':
             if self.model.camera is None:
@@ -195,7 +212,8 @@ class Planner:
 
         With the geometric occlusion prior, its weight is the evidence that the current estimate's
         visibility predictions explain the attempts so far (a badly wrong estimate predicts the hand
-        where it is not seen, and the flat prior takes over until the estimate improves).
+        where it is not seen, and the flat prior takes over until the estimate improves); with one
+        occlusion model per eye, each eye's weight from that eye's attempts.
         """
         s = self.settings
         P = np.array(P, dtype=float)  # noqa: N806
@@ -203,17 +221,28 @@ class Planner:
             # The next update starts from P + Q (the estimator's predict step); the table comes first.
             q = np.tile([s.q_length, s.q_length, s.q_angle, s.q_angle], self.model.n_joints)
             P[np.arange(q.size), np.arange(q.size)] += q
+        cameras = np.asarray(camera_pose, dtype=float)
+        per_eye = bool(self.eye_occlusion) and cameras.reshape(-1, 4, 4).shape[0] == 2
         cost = AcquisitionCost(self.model.base, np.asarray(dh, dtype=float).reshape(self.model.dh.shape),
-                               P, self.noise, np.asarray(camera_pose, dtype=float),
+                               P, self.noise, cameras,
                                self.model.markers, occlusion=self.occlusion, visibility=self.visibility,
                                penalty_a=self.penalty_a, penalty_b=s.penalty_b, occlusion_mode=s.occlusion_mode,
                                criterion=s.criterion, box_configs=self.box_configs, extrinsics=self.extrinsics,
-                               eye_correlation=s.eye_correlation)
+                               eye_correlation=s.eye_correlation,
+                               eye_occlusion=tuple(self.eye_occlusion[e] for e in self.eyes) if per_eye else None)
         if self.visibility is not None:
-            tried, _ = self.occlusion.attempts
-            cost.visibility_weight = (self.occlusion.geometric_evidence(cost.visibility_probability(tried))
-                                      if len(tried) else 0.5)
+            if per_eye:
+                cost.eye_visibility_weights = tuple(self._evidence(cost, occ, k)
+                                                    for k, occ in enumerate(cost.eye_occlusion))
+            else:
+                cost.visibility_weight = self._evidence(cost, self.occlusion)
         return cost
+
+    @staticmethod
+    def _evidence(cost: AcquisitionCost, occlusion: OcclusionModel, camera: int | None = None) -> float:
+        """The weight of the geometric prior for ``occlusion`` (the evidence from its attempts; 0.5 without)."""
+        tried, _ = occlusion.attempts
+        return occlusion.geometric_evidence(cost.visibility_probability(tried, camera)) if len(tried) else 0.5
 
     def queue_poses(self, poses: ArrayLike) -> None:
         """Visit ``poses`` (K, L) [rad] first, in order, before the strategy selects.
@@ -310,11 +339,16 @@ class Planner:
         return out
 
     def record(self, target: ArrayLike, reached: ArrayLike, outcome: Outcome | str, detected: bool | None,
-               selection_seconds: float, refused: int = 0, refused_paths: int = 0, source: str = '') -> Attempt:
-        """Account one iteration: occlusion model, movement, history.
+               selection_seconds: float, refused: int = 0, refused_paths: int = 0, source: str = '',
+               eyes: Mapping[str, bool] | None = None) -> Attempt:
+        """Account one iteration: occlusion model(s), movement, history.
 
         ``detected`` None means no frame was judged at the reached configuration (no frame, or
         only bad input): the occlusion model learns nothing, as for an unreached target.
+        ``eyes``: whether each eye saw the hand in that frame (an eye it does not name was not
+        judged); each per-eye model learns its own. Without it a failed detection counts as failed
+        for every eye (the pair's verdict is ``no_marker`` only when each eye judged says so), and a
+        detection teaches the per-eye models nothing (which eye saw it is unknown).
 
         Raises
         ------
@@ -329,7 +363,19 @@ class Planner:
         if outcome.informs_visibility and detected is not None:
             self.occlusion.add(np.clip(reached, self.model.calibration_box[:, 0], self.model.calibration_box[:, 1]),
                                detected)
+            self.learn_eyes(reached, eyes if eyes is not None else
+                            ({} if detected else dict.fromkeys(self.eye_occlusion, False)))
         attempt = Attempt(len(self.history) + 1, np.asarray(target, dtype=float), reached, outcome,
                           bool(detected), self.movement_deg, selection_seconds, refused, refused_paths, source)
         self.history.append(attempt)
         return attempt
+
+    def learn_eyes(self, reached: ArrayLike, eyes: Mapping[str, bool]) -> None:
+        """Teach each eye's occlusion model whether that eye saw the hand at ``reached`` (L,) (an
+        eye not in ``eyes`` learns nothing): :meth:`record` does, or the caller once the verdicts
+        arrive after an attempt recorded without them."""
+        theta = np.clip(np.asarray(reached, dtype=float), self.model.calibration_box[:, 0],
+                        self.model.calibration_box[:, 1])
+        for eye, model in self.eye_occlusion.items():
+            if eye in eyes:
+                model.add(theta, bool(eyes[eye]))

@@ -29,7 +29,8 @@ Subscriptions
 /diagnostics : diagnostic_msgs/DiagnosticArray, the detector's per-frame verdicts (statuses named
     calibration_interfaces.outcome.DETECTOR_DIAGNOSTIC): a ``bad_input`` frame after settling is
     not a failed detection; the loop waits for a judged frame and otherwise ends the iteration
-    ``bad_input`` (warned), which the occlusion model ignores
+    ``bad_input`` (warned), which the occlusion model ignores; each eye's own verdict on the frame
+    that decided an attempt teaches that eye's occlusion model (``occlusion_per_eye``)
 /body_schema/update_status : diagnostic_msgs/DiagnosticStatus (keys: calibration_interfaces.outcome.StatusKey)
 
 Publications
@@ -47,7 +48,8 @@ wait_report_period, camera_prior, marker_prior, collision_check, collision_margi
 optimizer, algorithm, max_evals, n_candidates, refine_starts, refine_evals, local_algorithm,
 repeat_tolerance (StrategySettings); penalty_a, penalty_b, occlusion_length_scale,
 occlusion_a0, occlusion_b0, occlusion_prior ('flat' | 'geometric'), occlusion_mode ('paper' |
-'expected' | 'gain'), criterion ('a_optimal' | 'v_optimal'), box_samples (PlannerSettings);
+'expected' | 'gain'), criterion ('a_optimal' | 'v_optimal'), box_samples, q_length, q_angle, visibility_margin,
+visibility_marker_widths, eye_correlation, occlusion_per_eye (PlannerSettings);
 iterations, settle_tolerance (rad), settle_timeout (s, sim), settle_time (s, sim),
 outcome_timeout (s, sim), max_joint_speed_deg, speed_scale, stop_on_unreachable, resend_after (s, sim)
 (LoopSettings);
@@ -130,7 +132,8 @@ class SelectorNode(Node):
         else:
             self.get_logger().warning('collision_check is off: targets are not checked against the obstacles '
                                       'or the arm itself')
-        self.planner = Planner(self.model, noise, planner_settings, extrinsics=extrinsics, safety=safety)
+        self.planner = Planner(self.model, noise, planner_settings, extrinsics=extrinsics, safety=safety,
+                               eyes=tuple(self.eyes))
         if self.settings.poses_file:
             poses = read_pose_list(self.settings.poses_file, self.model)
             self.planner.queue_poses(poses.positions)
@@ -208,7 +211,7 @@ class SelectorNode(Node):
                 if self.planner.start is None:      # movement is the recorded total (below), not re-derived
                     self.planner.start = np.radians(r['reached_deg'])
                 self.planner.record(np.radians(r['target_deg']), np.radians(r['reached_deg']), r['outcome'],
-                                    bool(r['detected']), float(r['selection_s']))
+                                    bool(r['detected']), float(r['selection_s']), eyes=r.get('eyes'))
             except KeyError as exc:
                 raise ValueError(f'{path}: iteration record without {exc}: {r}') from None
         if records:
@@ -308,6 +311,9 @@ class SelectorNode(Node):
             except StatusFormatError as exc:
                 self._warn_once('frame', f'/diagnostics {DETECTOR_DIAGNOSTIC} status ignored: {exc}')
                 continue
+            if frame.eyes:
+                self.loop.eye_verdicts(frame.stamp, {eye: v is FrameStatus.DETECTED for eye, v in frame.eyes.items()
+                                                     if v is not FrameStatus.BAD_INPUT})
             if frame.status is FrameStatus.BAD_INPUT and self.loop.bad_frame(frame.stamp, status.message):
                 self._warn(f'bad_input.{frame.kind}', f'the attempt frame at {frame.stamp:.3f} s was bad input '
                            f'({status.message}); not counted as the hand hidden, waiting for the next')

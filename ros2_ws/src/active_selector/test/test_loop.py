@@ -81,6 +81,39 @@ def test_success_needs_a_seen_hand_and_a_verdict_at_the_reached_configuration(lo
     assert loop.planner.occlusion.n_configs == 1
 
 
+def test_each_eyes_verdict_on_the_deciding_frame_reaches_the_planner():
+    planner = Planner(ARM, PoseDependentNoise(), PlannerSettings(SelectorConfig(strategy='random', seed=4),
+                                                                 occlusion_per_eye=True), eyes=('left', 'right'))
+    lp = CalibrationLoop(planner, LoopSettings(iterations=4, settle_tolerance=TOL, settle_time=0.1), Clock())
+    lp.joint_state(0.0, START)
+    target = _command(lp)
+    _settle(lp, target)
+    lp.eye_verdicts(1.1, {'left': True, 'right': True})         # an earlier frame
+    lp.markers(1.2, True)
+    lp.eye_verdicts(1.2 + 1e-10, {'left': False, 'right': True})  # the deciding one's, after it ('%.9f' stamp)
+    it = lp.estimator_outcome('accepted', target)
+    assert it.record['eyes'] == {'left': False, 'right': True}
+    assert planner.eye_occlusion['left'].attempts[1].tolist() == [False]
+    assert planner.eye_occlusion['right'].attempts[1].tolist() == [True]
+    # A failed frame whose per-eye verdicts have not arrived (the iteration ends on the frame): every eye failed.
+    target = _command(lp)
+    _settle(lp, target, 3.0)
+    it = lp.markers(3.2, False)
+    assert it.record['eyes'] is None and planner.eye_occlusion['right'].attempts[1].tolist() == [True, False]
+    # The estimator's verdict first, then the frame ends the attempt, then the per-eye verdicts come
+    # (after the next command, even): they still teach the eyes' models, once.
+    target = _command(lp)
+    _settle(lp, target, 5.0)
+    assert lp.estimator_outcome('accepted', target) is None
+    it = lp.markers(5.2, True)
+    assert it.record['eyes'] is None and len(planner.eye_occlusion['left'].attempts[1]) == 2
+    lp.joint_state(5.3, target)
+    lp.eye_verdicts(5.2, {'left': True})
+    lp.eye_verdicts(5.2, {'left': True})
+    assert planner.eye_occlusion['left'].attempts[1].tolist() == [False, False, True]
+    assert len(planner.eye_occlusion['right'].attempts[1]) == 2
+
+
 def test_a_verdict_that_came_before_the_frame_still_counts(loop):
     target = _command(loop)
     _settle(loop, target)
@@ -105,7 +138,7 @@ def test_a_verdict_on_an_earlier_image_does_not_end_a_near_repeat():
     the iteration before the estimator had judged its image (and the next selection ran without
     it). A verdict counts only for an image stamped after the iteration's command."""
     planner = Planner(ARM, PoseDependentNoise(), PlannerSettings(SelectorConfig(strategy='random', seed=4)))
-    lp = CalibrationLoop(planner, LoopSettings(iterations=3, settle_tolerance=TOL, settle_time=0.1), Clock())
+    lp = CalibrationLoop(planner, LoopSettings(iterations=4, settle_tolerance=TOL, settle_time=0.1), Clock())
     lp.joint_state(0.0, START)
     planner.queue_poses([START + 0.1, START + 0.1 + 1.5 * TOL])
     first = _command(lp)

@@ -89,6 +89,31 @@ def test_eye_correlation_reaches_a_stereo_cost():
     assert cost.eye_correlation == 0.3 and cost.terms_batch(ARM.calibration_box.mean(1)[None])[0].shape == (1,)
 
 
+def test_each_eye_learns_its_own_verdicts():
+    pl = Planner(ARM, PoseDependentNoise(), PlannerSettings(occlusion_per_eye=True), eyes=('left', 'right'))
+    pl.start = np.mean(ARM.calibration_box, axis=1)
+    q = sampling.uniform_configs(ARM.calibration_box, 4, 3)
+    pl.record(q[0], q[0], 'accepted', True, 0.0, eyes={'left': False, 'right': True})
+    pl.record(q[1], q[1], 'failed', False, 0.0)                        # no eye saw it: both learn
+    pl.record(q[2], q[2], 'accepted', True, 0.0)                       # which eye saw it is unknown
+    pl.record(q[3], q[3], 'failed', False, 0.0, eyes={'left': False})  # the right eye was not judged
+    left, right = (pl.eye_occlusion[e].attempts for e in ('left', 'right'))
+    assert left[1].tolist() == [False, False, False] and right[1].tolist() == [True, False]
+    np.testing.assert_allclose(left[0], q[[0, 1, 3]])
+    assert pl.occlusion.attempts[1].tolist() == [True, False, True, False]      # the pair's, unchanged
+    # The cost plans with them: the untaught right eye's geometric weight is 0.5, the left's from its attempts.
+    pair = np.stack([ARM.camera_pose('left'), ARM.camera_pose('right')])
+    cost = pl.cost(ARM.dh, sampling.initial_covariance(7) * 1e-4, pair)
+    assert cost.eye_occlusion == (pl.eye_occlusion['left'], pl.eye_occlusion['right'])
+    assert cost.eye_visibility_weights[0] != 0.5 and cost.visibility_weight == 1.0
+    # One camera, or the setting off: the pair's model alone.
+    assert pl.cost(ARM.dh, sampling.initial_covariance(7), ARM.camera_pose()).eye_occlusion is None
+    off = Planner(ARM, PoseDependentNoise(), PlannerSettings(occlusion_per_eye=False), eyes=('left', 'right'))
+    assert off.eye_occlusion == {} and off.cost(ARM.dh, sampling.initial_covariance(7), pair).eye_occlusion is None
+    with pytest.raises(ValueError, match="eyes must name.*'left', 'left'"):
+        Planner(ARM, PoseDependentNoise(), eyes=('left', 'left'))
+
+
 def test_geometric_prior_loses_weight_when_its_predictions_fail():
     pl = Planner(ARM, PoseDependentNoise(), PlannerSettings(occlusion_prior='geometric'))
     pl.start = np.mean(ARM.calibration_box, axis=1)

@@ -40,7 +40,9 @@ already computed for the gain, instead of the paper's flat ``a0 / (a0 + b0)``.
 Two cameras (the iCub's eyes, whose images the detector combines): the cost takes both poses;
 ``eta``'s prior is the probability that either eye sees the hand, and ``g`` the expected gain of
 the detection the attempt gives when it succeeds: the stereo one when both eyes see the hand, one
-eye's when only it does (:meth:`AcquisitionCost.terms_batch`).
+eye's when only it does (:meth:`AcquisitionCost.terms_batch`). With one occlusion model per eye
+(``eye_occlusion``), each eye's probability is its own model's posterior mean over that eye's
+geometric prior, and ``eta`` the probability that either sees the hand.
 
 Strategies:
 
@@ -279,6 +281,13 @@ class AcquisitionCost:
         With two cameras, how the visibility of one follows the other's, in [0, 1]: the
         probability both see the hand is ``c min(p_1, p_2) + (1 - c) p_1 p_2`` (0: independent, 1:
         the camera that sees less sees only when the other does).
+    eye_occlusion : (OcclusionModel, OcclusionModel), optional
+        With two cameras: one occlusion model per camera, each learning where its own camera saw
+        the hand. Given, each camera's ``p_k`` is its model's posterior mean (with that camera's
+        geometric prior, when there is a visibility prior) and the attempt's success probability
+        ``eta`` is the probability that either camera sees the hand; ``occlusion`` is then not used.
+    eye_visibility_weights : (float, float)
+        Per camera, what ``visibility_weight`` is for the shared model (with ``eye_occlusion``).
     """
 
     base: NDArray[np.float64]
@@ -298,6 +307,8 @@ class AcquisitionCost:
     noise_scales: tuple[float, float] = DETECTOR_NOISE_SCALES
     extrinsics: Extrinsics | None = None
     eye_correlation: float = 0.6
+    eye_occlusion: tuple[OcclusionModel, OcclusionModel] | None = None
+    eye_visibility_weights: tuple[float, float] = (1.0, 1.0)
     weight: NDArray[np.float64] | None = field(init=False, repr=False)
     uncertainty: float = field(init=False, repr=False)
     _marker_frames: NDArray[np.float64] = field(init=False, repr=False)
@@ -313,6 +324,11 @@ class AcquisitionCost:
             raise ValueError('extrinsics are estimated for one camera; got a stereo pair of camera poses')
         if not 0.0 <= self.eye_correlation <= 1.0:
             raise ValueError(f'eye_correlation must be in [0, 1], got {self.eye_correlation}')
+        if self.eye_occlusion is not None and (len(self._cameras) != 2 or len(self.eye_occlusion) != 2):
+            raise ValueError(f'eye_occlusion needs two cameras and two models, got {len(self._cameras)} '
+                             f'camera(s) and {len(self.eye_occlusion)} model(s)')
+        if len(self.eye_visibility_weights) != 2 or not all(0.0 <= w <= 1.0 for w in self.eye_visibility_weights):
+            raise ValueError(f'eye_visibility_weights must be two values in [0, 1], got {self.eye_visibility_weights}')
         n_extra = 0 if self.extrinsics is None else self.extrinsics.n
         n = self.dh.size + n_extra
         if self.P.shape != (n, n):
@@ -378,7 +394,9 @@ class AcquisitionCost:
             gain = information_gain(hp, hph + R, self.weight)
             prior = None if self.visibility is None else self._visibility(hand, hph)
         else:
-            gain, prior = self._stereo_terms(hand, hp, hph)
+            gain, prior = self._stereo_terms(hand, hp, hph, thetas)
+            if self.eye_occlusion is not None:
+                return gain, prior, hand[:, 0, 3]                             # each camera's own model
         if self.occlusion is not None:
             if prior is not None and self.visibility_weight < 1.0:
                 flat = self.occlusion.a0 / (self.occlusion.a0 + self.occlusion.b0)
@@ -388,11 +406,22 @@ class AcquisitionCost:
             eta = np.ones(hand.shape[0]) if prior is None else prior
         return gain, eta, hand[:, 0, 3]
 
-    def _pair_outcomes(self, hand: NDArray[np.float64], hph: NDArray[np.float64]
+    def _pair_outcomes(self, hand: NDArray[np.float64], hph: NDArray[np.float64],
+                       thetas: ArrayLike | None = None, learned: bool = True
                        ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-        """Probabilities (N,) that both cameras, only the first, only the second see the hand."""
-        stds = self._pose_stds(hph)
-        p1, p2 = (self._visibility(hand, hph, cam, stds) for cam in self._cameras)
+        """Probabilities (N,) that both cameras, only the first, only the second see the hand: from
+        the geometric visibility, or (with :attr:`eye_occlusion` and ``learned``; needs ``thetas``
+        (N, L)) each camera's occlusion model with its geometric prior."""
+        if self.visibility is not None:
+            stds = self._pose_stds(hph)
+            p1, p2 = (self._visibility(hand, hph, cam, stds) for cam in self._cameras)
+        if self.eye_occlusion is not None and learned:
+            u = np.atleast_2d(np.asarray(thetas, dtype=float))
+            if self.visibility is None:
+                p1, p2 = (occ.mean(u) for occ in self.eye_occlusion)
+            else:
+                p1, p2 = (occ.mean(u, w * p + (1.0 - w) * occ.a0 / (occ.a0 + occ.b0))
+                          for occ, p, w in zip(self.eye_occlusion, (p1, p2), self.eye_visibility_weights))
         c = self.eye_correlation
         both = c * np.minimum(p1, p2) + (1.0 - c) * p1 * p2
         return both, p1 - both, p2 - both
@@ -404,13 +433,14 @@ class AcquisitionCost:
         r1, r2 = (self.noise.hand_covariance(cam, poses, self.markers).reshape(-1, 6, 6) for cam in self._cameras)
         return [stereo_covariance(np.stack([r1, r2], axis=-3), self.noise), r1, r2]
 
-    def _stereo_terms(self, hand: NDArray[np.float64], hp: NDArray[np.float64],
-                      hph: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
-        """Expected gain given success and the probability of success (None without a visibility prior)."""
+    def _stereo_terms(self, hand: NDArray[np.float64], hp: NDArray[np.float64], hph: NDArray[np.float64],
+                      thetas: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+        """Expected gain given success and the probability of success (None without a visibility
+        prior or per-camera occlusion models)."""
         covariances = self._pair_covariances(hand)
-        if self.visibility is None:
+        if self.visibility is None and self.eye_occlusion is None:
             return information_gain(hp, hph + covariances[0], self.weight), None
-        outcomes = self._pair_outcomes(hand, hph)
+        outcomes = self._pair_outcomes(hand, hph, thetas)
         seen = sum(outcomes)
         # The three outcomes' gains in one stacked solve (3, N): a third of the calls per evaluation.
         gains = information_gain(hp, hph + np.stack(covariances), self.weight)
@@ -437,13 +467,14 @@ class AcquisitionCost:
         (N, 6, 6) by ``camera`` (4, 4); by either camera of a pair when it is None. ``stds``: the
         covariances' :meth:`_pose_stds` when already computed."""
         if camera is None and len(self._cameras) == 2:
-            return sum(self._pair_outcomes(hand, hph))
+            return sum(self._pair_outcomes(hand, hph, learned=False))
         pos_std, rot_std = self._pose_stds(hph) if stds is None else stds
         return self.visibility.probability(self._cameras[0] if camera is None else camera,
                                            hand[:, None] @ self._marker_frames, pos_std, rot_std)
 
-    def visibility_probability(self, thetas: ArrayLike) -> NDArray[np.float64]:
-        """The geometric prior alone at configurations (N, L) -> (N,), as the current estimate predicts it.
+    def visibility_probability(self, thetas: ArrayLike, camera: int | None = None) -> NDArray[np.float64]:
+        """The geometric prior alone at configurations (N, L) -> (N,), as the current estimate predicts it:
+        for camera number ``camera`` of :attr:`camera_pose`, or (None) for any of them.
 
         Raises
         ------
@@ -454,7 +485,8 @@ class AcquisitionCost:
             raise ValueError('this AcquisitionCost has no visibility prior')
         frames = kinematics.chain_frames(self.base, self.dh, np.atleast_2d(thetas))
         H = self._jacobian(frames)                                               # noqa: N806
-        return self._visibility(frames[:, -1], H @ self.P @ np.swapaxes(H, -1, -2))
+        hph = H @ self.P @ np.swapaxes(H, -1, -2)
+        return self._visibility(frames[:, -1], hph, None if camera is None else self._cameras[camera])
 
     def posterior(self, theta: ArrayLike) -> NDArray[np.float64]:
         """The covariance after one observation at ``theta`` (L,): ``P - B^T S^-1 B`` with
@@ -469,8 +501,8 @@ class AcquisitionCost:
         else:
             covariances = self._pair_covariances(frames[:, -1])
             likeliest = 0
-            if self.visibility is not None:
-                likeliest = int(np.argmax([o[0] for o in self._pair_outcomes(frames[:, -1], hph[None])]))
+            if self.visibility is not None or self.eye_occlusion is not None:
+                likeliest = int(np.argmax([o[0] for o in self._pair_outcomes(frames[:, -1], hph[None], theta)]))
             R = covariances[likeliest][0]                                        # noqa: N806
         post = self.P - hp.T @ np.linalg.solve(hph + R, hp)
         return 0.5 * (post + post.T)

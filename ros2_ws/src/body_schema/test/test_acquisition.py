@@ -428,12 +428,54 @@ def test_stereo_single_evaluation_equals_batched(arm, box_configs, learned_occlu
     assert np.ptp(batch[0]) > 0 and np.ptp(batch[1]) > 0.1
 
 
+def test_per_eye_occlusion_without_attempts_is_the_geometric_either_eye(arm, box_configs, learned_occlusion):
+    # Untaught, each eye's model returns its prior mean (the eye's geometric visibility): the
+    # either-eye success probability and the gain are those of the shared model before it learns.
+    prior = VisibilityPrior(arm.camera)
+    _, shared = _stereo(arm, box_configs, visibility=prior, occlusion=OcclusionModel(arm.calibration_box, 0.5, 1.0, 2.0))
+    untaught = tuple(OcclusionModel(arm.calibration_box, 0.5, 1.0, 2.0) for _ in range(2))
+    per_eye = replace(shared, occlusion=learned_occlusion, eye_occlusion=untaught)   # the shared one is unused
+    qs = sampling.uniform_configs(arm.calibration_box, 64, 12)
+    for a, b in zip(per_eye.terms_batch(qs), shared.terms_batch(qs)):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(per_eye.evaluate(qs), [per_eye(q) for q in qs], rtol=1e-12, atol=1e-15)
+
+
+def test_per_eye_occlusion_plans_for_the_eye_that_sees(arm, box_configs):
+    # Where the left eye has failed and the right has seen the hand, the attempt is still likely to
+    # succeed (either eye), and the gain expected is the right eye's alone.
+    models = tuple(OcclusionModel(arm.calibration_box, 0.5, 1.0, 2.0) for _ in range(2))
+    q = sampling.uniform_configs(arm.calibration_box, 1, 13)[0]
+    for _ in range(10):
+        models[0].add(q, False)
+        models[1].add(q, True)
+    mono, stereo = _stereo(arm, box_configs)
+    stereo = replace(stereo, eye_occlusion=models)
+    gain, eta, _ = stereo.terms_batch(q[None])
+    p_left, p_right = (m.mean(q) for m in models)
+    assert p_left < 0.2 < 0.8 < p_right
+    assert max(p_left, p_right) <= eta[0] <= p_left + p_right
+    right = replace(mono, camera_pose=arm.camera_pose('right'))
+    both = replace(stereo, eye_occlusion=None)                 # both eyes assumed to see it
+    g_right, g_both = right.terms_batch(q[None])[0][0], both.terms_batch(q[None])[0][0]
+    assert abs(gain[0] - g_right) < 0.2 * abs(g_both - g_right)
+    # Both eyes failing there: the attempt is unlikely to succeed.
+    for _ in range(20):
+        models[1].add(q, False)
+    assert stereo.terms_batch(q[None])[1][0] < 0.5 * eta[0]
+
+
 def test_stereo_cost_refuses_what_it_cannot_model(arm, box_configs):
     mono, stereo = _stereo(arm, box_configs)
     with pytest.raises(ValueError, match=r'camera_pose must have shape.*\(3, 4, 4\)'):
         replace(mono, camera_pose=np.stack([arm.camera_pose('left')] * 3))
     with pytest.raises(ValueError, match='eye_correlation.*1.5'):
         replace(stereo, eye_correlation=1.5)
+    models = (OcclusionModel(arm.calibration_box), OcclusionModel(arm.calibration_box))
+    with pytest.raises(ValueError, match=r'eye_occlusion needs two cameras.*1 camera'):
+        replace(mono, eye_occlusion=models)
+    with pytest.raises(ValueError, match=r'eye_visibility_weights.*1.2'):
+        replace(stereo, eye_visibility_weights=(0.5, 1.2))
     extrinsics = Extrinsics(arm.camera_pose('left'), arm.markers[0].hand_T_marker, (0.01, 0.01), None)
     with pytest.raises(ValueError, match='one camera'):
         AcquisitionCost(arm.base, stereo.dh, scipy.linalg.block_diag(stereo.P, np.eye(extrinsics.n) * 1e-4),

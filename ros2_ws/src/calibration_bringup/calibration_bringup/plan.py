@@ -118,12 +118,13 @@ def make_plan(robot: str, n: int, seed: int = 1, *, strategy: str | None = None,
     extrinsics = (Extrinsics(model.camera_pose(node_settings.eye), model.markers[0].hand_T_marker, *priors)
                   if any(p is not None for p in priors) else None)
     collision = CollisionModel(model, margin) if collision_check else None
-    planner = Planner(model, noise, planner_settings, extrinsics=extrinsics, safety=collision)
+    # The camera pose, or the stereo pair's, the selector node would plan with.
+    eyes = node_settings.planned_eyes(model)
+    planner = Planner(model, noise, planner_settings, extrinsics=extrinsics, safety=collision, eyes=tuple(eyes))
     planner.start = (np.radians(np.asarray(start_deg, dtype=float)) if start_deg is not None
                      else model.calibration_box.mean(axis=1))
     t0 = time.perf_counter()
-    # The camera pose, or the stereo pair's, the selector node would plan with.
-    cameras = np.stack([model.camera_pose(eye) for eye in node_settings.planned_eyes(model)])
+    cameras = np.stack([model.camera_pose(eye) for eye in eyes])
     selections = planner.plan(estimator.dh, estimator.P, cameras[0] if len(cameras) == 1 else cameras, n)
     return Plan(model, planner.start, selections, collision, time.perf_counter() - t0)
 

@@ -26,7 +26,7 @@ from __future__ import annotations
 import enum
 import os
 from collections.abc import Callable, Iterator, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TypeVar
 
 import numpy as np
@@ -192,6 +192,7 @@ class FrameKey(enum.StrEnum):
     STATUS = 'status'             # a FrameStatus value
     STAMP = 'stamp'               # image stamp [s], '%.9f'
     KIND = 'kind'                 # what was bad (e.g. 'image.encoding', 'camera_info.D'); '' otherwise
+    EYES = 'eyes'                 # each eye's own verdict, 'left=detected right=no_marker' (absent: unknown)
 
 
 #: ``name`` of the detector's per-frame DiagnosticStatus (``hardware_id`` is the eye).
@@ -209,24 +210,48 @@ class FrameReport:
         Image stamp [s].
     kind : str
         What was bad, for ``bad_input``; empty otherwise.
+    eyes : dict of str to FrameStatus
+        Each eye's own verdict (a stereo pair's status is ``detected`` when either eye saw the
+        hand); empty when the detector did not say (a bag recorded before the key existed).
     """
 
     status: FrameStatus
     stamp: float
     kind: str = ''
+    eyes: Mapping[str, FrameStatus] = field(default_factory=dict)
 
 
-def encode_frame(status: FrameStatus | str, stamp: float, kind: str = '') -> dict[str, str]:
-    """The key/value strings of one frame verdict (the DiagnosticStatus ``values``)."""
-    return {FrameKey.STATUS.value: FrameStatus(status).value, FrameKey.STAMP.value: f'{stamp:.9f}',
-            FrameKey.KIND.value: kind}
+def encode_frame(status: FrameStatus | str, stamp: float, kind: str = '',
+                 eyes: Mapping[str, FrameStatus | str] | None = None) -> dict[str, str]:
+    """The key/value strings of one frame verdict (the DiagnosticStatus ``values``); ``eyes``, each
+    eye's own verdict, is written when given.
+
+    Raises
+    ------
+    ValueError
+        If an eye's name is empty or holds a space or '=' (the value's separators).
+    """
+    values = {FrameKey.STATUS.value: FrameStatus(status).value, FrameKey.STAMP.value: f'{stamp:.9f}',
+              FrameKey.KIND.value: kind}
+    if eyes is not None:
+        for eye in eyes:
+            if not eye or ' ' in eye or '=' in eye:
+                raise ValueError(f"eye name {eye!r} must be non-empty, without spaces or '='")
+        values[FrameKey.EYES.value] = ' '.join(f'{eye}={FrameStatus(v).value}' for eye, v in eyes.items())
+    return values
 
 
 def decode_frame(values: Mapping[str, str]) -> FrameReport:
     """The frame verdict :func:`encode_frame` wrote; a :class:`StatusFormatError` names a missing
     key or a value that does not parse."""
+    def eyes() -> dict[str, FrameStatus]:
+        pairs = [item.partition('=') for item in values.get(FrameKey.EYES, '').split()]
+        if any(not eye or not sep for eye, sep, _ in pairs):
+            raise ValueError(f"eyes must be 'name=status' items, got {values[FrameKey.EYES]!r}")
+        return {eye: FrameStatus(v) for eye, _, v in pairs}
+
     return _parsed('frame status', values, lambda: FrameReport(
-        FrameStatus(values[FrameKey.STATUS]), float(values[FrameKey.STAMP]), values.get(FrameKey.KIND, '')))
+        FrameStatus(values[FrameKey.STATUS]), float(values[FrameKey.STAMP]), values.get(FrameKey.KIND, ''), eyes()))
 
 
 def _parsed(what: str, values: Mapping[str, str], build: Callable[[], T]) -> T:

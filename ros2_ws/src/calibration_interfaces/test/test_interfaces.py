@@ -261,6 +261,23 @@ def test_frame_verdict_round_trip_and_levels() -> None:
         decode_frame({'stamp': '1.0'})
 
 
+def test_frame_verdict_carries_each_eyes_own() -> None:
+    from calibration_interfaces.outcome import FrameStatus, decode_frame, encode_frame
+
+    values = encode_frame('detected', 1.5, eyes={'left': 'no_marker', 'right': FrameStatus.DETECTED})
+    assert values['eyes'] == 'left=no_marker right=detected'
+    r = decode_frame(values)
+    assert r.status is FrameStatus.DETECTED
+    assert dict(r.eyes) == {'left': FrameStatus.NO_MARKER, 'right': FrameStatus.DETECTED}
+    assert decode_frame(encode_frame('no_marker', 1.5)).eyes == {}      # a detector that did not say
+    with pytest.raises(StatusFormatError, match='eyes'):
+        decode_frame({**values, 'eyes': 'left detected'})
+    with pytest.raises(StatusFormatError, match="'seen'"):
+        decode_frame({**values, 'eyes': 'left=seen'})
+    with pytest.raises(ValueError, match="'left eye'"):
+        encode_frame('detected', 1.5, eyes={'left eye': 'detected'})
+
+
 def test_noise_parameters_take_the_description_law_unless_set() -> None:
     from body_schema.noise import ConstantNoise, PoseDependentNoise
     from body_schema.robot import load_robot

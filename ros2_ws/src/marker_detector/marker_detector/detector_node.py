@@ -30,7 +30,7 @@ camera frame (frame_id and stamp of the image); an empty array is an explicit fa
 camera_info, no camera pose yet) publishes nothing here.
 ``/diagnostics`` (diagnostic_msgs/DiagnosticArray): one status per frame, named
 ``marker_detector``, hardware_id the eye(s): OK detected, WARN no marker, ERROR bad input with
-the reason (keys: :class:`calibration_interfaces.outcome.FrameKey`).
+the reason, and each eye's own verdict (keys: :class:`calibration_interfaces.outcome.FrameKey`).
 With both eyes, one message per stereo pair, expressed in the left camera frame.
 A frame whose stamp equals the previous frame's of the same eye is dropped (same evidence).
 Warnings about bad input are throttled per kind of problem (one per kind every 2 s), not per
@@ -293,8 +293,10 @@ class DetectorNode(Node):
         message = {FrameStatus.DETECTED: 'hand detected', FrameStatus.NO_MARKER: 'no marker accepted',
                    FrameStatus.BAD_INPUT: '; '.join(f'{i.eye}: {i.result.bad_input}' for i in entry.values()
                                                     if i.result.bad_input is not None)}[status]
+        # Each eye's own verdict too: the selector learns where each eye sees the hand.
         values = encode_frame(status, header.stamp.sec + header.stamp.nanosec * 1e-9,
-                              ' '.join(b.kind for b in bad) if status is FrameStatus.BAD_INPUT else '')
+                              ' '.join(b.kind for b in bad) if status is FrameStatus.BAD_INPUT else '',
+                              {name: item.result.status for name, item in entry.items()})
         diag = DiagnosticArray()
         diag.header.stamp = header.stamp
         diag.header.frame_id = header.frame_id

@@ -286,7 +286,8 @@ def test_bad_input_is_not_a_failed_detection(ros: Any, model, monkeypatch) -> No
     ros.spin_until(lambda: (cam.publish_info(), det.eyes['left'].k is not None)[1], 5.0, 'camera_info')
     good = [dict(rgb=zeros), dict(rgb=np.random.default_rng(0).integers(0, 256, (240, 320, 3), dtype=np.uint8))]
     for i, kw in enumerate(good):
-        assert send(10 + i, **kw).status is FrameStatus.NO_MARKER
+        r = send(10 + i, **kw)
+        assert r.status is FrameStatus.NO_MARKER and r.eyes == {'left': FrameStatus.NO_MARKER}
     bad = [
         (dict(rgb=zeros, encoding='32FC1'), 'image.encoding'),       # a depth image
         (dict(rgb=zeros, data=b'\x00' * 100), 'image.data'),        # truncated
@@ -344,6 +345,8 @@ def test_constant_noise_and_invalid_parameters(ros: Any, model) -> None:
 def test_stereo_pair_gives_one_fused_outcome(ros: Any, model) -> None:
     q = Q
     left, right, probe = Camera(ros, model, 'left'), Camera(ros, model, 'right'), Probe(ros)
+    diags: list[DiagnosticArray] = []
+    probe.node.create_subscription(DiagnosticArray, '/diagnostics', diags.append, 100)
     left.publish_pose()
     right.publish_pose()
     det = _detector(ros, use_right_eye=True, stereo_timeout=0.3)
@@ -377,3 +380,12 @@ def test_stereo_pair_gives_one_fused_outcome(ros: Any, model) -> None:
     assert np.linalg.norm(pose_msg_to_matrix(hands[0].pose.pose)[:3, 3] - truth[:3, 3]) < 0.006
     # Only the left eye: after the timeout the frame is decided alone.
     ros.spin_until(lambda: send(21, ('left',)), 10.0, 'left-only outcome after the stereo timeout')
+
+    def eyes(stamp: int) -> dict[str, FrameStatus]:
+        return next(dict(decode_frame({v.key: v.value for v in st.values}).eyes) for d in diags
+                    for st in d.status if st.name == DETECTOR_DIAGNOSTIC and d.header.stamp.sec == stamp)
+
+    # The verdict names each eye's own (the selector learns where each eye sees the hand).
+    ros.spin_until(lambda: {d.header.stamp.sec for d in diags} >= {20, 21}, 5.0, 'both verdicts')
+    assert eyes(20) == {'left': FrameStatus.DETECTED, 'right': FrameStatus.DETECTED}
+    assert eyes(21) == {'left': FrameStatus.DETECTED}

@@ -19,8 +19,7 @@ ITERATIONS = 10
 def test_ten_al_iterations_close_the_loop(ros):
     with InProcessGraph(ros.context, ros.executor, {
             'sim': {'perturb_seed': 7}, 'estimator': {'initial_seed': 3},
-            'selector': {'strategy': 'al', 'iterations': ITERATIONS, 'max_evals': 300,
-                         'occlusion_per_eye': True}}) as graph:
+            'selector': {'strategy': 'al', 'iterations': ITERATIONS, 'max_evals': 300}}) as graph:
         sim, est, sel = graph.sim, graph.estimator, graph.selector
         x0 = est.estimator.dh.copy()
         ros.spin_until(lambda: sel.done, 240.0, f'{ITERATIONS} AL iterations')
@@ -28,10 +27,10 @@ def test_ten_al_iterations_close_the_loop(ros):
         history = sel.planner.history
         assert [a.iteration for a in history] == list(range(1, ITERATIONS + 1))
         outcomes = [a.outcome for a in history]
-        assert set(outcomes) <= {'accepted', 'rejected', 'failed'}, outcomes   # none timed out or stuck
-        # Both eyes (the default) with per-eye occlusion models: each eye's verdict on an attempt's frame reached its own
-        # occlusion model (an eye whose image missed the pairing is not judged), and the pair saw
-        # the hand exactly when one of the eyes did.
+        assert set(outcomes) <= {'accepted', 'outlier', 'rejected', 'failed'}, outcomes   # none timed out or stuck
+        # Both eyes (the default), one occlusion model each: each eye's verdict on an attempt's
+        # frame reached its own model (an eye whose image missed the pairing is not judged), and
+        # the pair saw the hand exactly when one of the eyes did.
         tried, pair = sel.planner.occlusion.attempts
         assert len(pair) == len(history)
         seen_by = [[] for _ in pair]
@@ -42,7 +41,7 @@ def test_ten_al_iterations_close_the_loop(ros):
                 seen_by[int(np.flatnonzero((tried == qk).all(axis=1))[0])].append(bool(sk))
         assert [any(s) for s in seen_by] == pair.tolist(), (seen_by, pair)
         counters = est.estimator.counters
-        assert counters['updates'] == outcomes.count('accepted')
+        assert counters['updates'] == outcomes.count('accepted') + outcomes.count('outlier')   # both update
         assert counters['updates'] >= ITERATIONS // 2
         ev = PoseErrorEvaluator(sim.robot.base, sim.true_dh, sim.robot.calibration_box)
         e0, e1 = ev(x0), ev(est.estimator.dh)
@@ -54,7 +53,7 @@ def test_ten_al_iterations_close_the_loop(ros):
     ({'image_encoding': 'bayer_rggb8'}, {}),
 ], ids=['compressed-jpeg', 'bayer_rggb8'])
 def test_the_loop_on_compressed_images_and_a_bayer_camera(ros, sim, detector):
-    iterations = 6
+    iterations = 8          # three of the first attempts may miss the hand (seed 7, both eyes)
     with InProcessGraph(ros.context, ros.executor, {
             'sim': {'perturb_seed': 7, **sim}, 'detector': detector, 'estimator': {'initial_seed': 3},
             'selector': {'strategy': 'al', 'iterations': iterations, 'max_evals': 300}}) as graph:
@@ -62,8 +61,10 @@ def test_the_loop_on_compressed_images_and_a_bayer_camera(ros, sim, detector):
         x0 = est.estimator.dh.copy()
         ros.spin_until(lambda: sel.done, 240.0, f'{iterations} AL iterations')
         outcomes = [a.outcome for a in sel.planner.history]
-        assert len(outcomes) == iterations and set(outcomes) <= {'accepted', 'rejected', 'failed'}, outcomes
-        assert est.estimator.counters['updates'] == outcomes.count('accepted') >= iterations // 2
+        assert len(outcomes) == iterations, outcomes
+        assert set(outcomes) <= {'accepted', 'outlier', 'rejected', 'failed'}, outcomes
+        assert est.estimator.counters['updates'] == outcomes.count('accepted') + outcomes.count('outlier') \
+            >= iterations // 2
         ev = PoseErrorEvaluator(graph.sim.robot.base, graph.sim.true_dh, graph.sim.robot.calibration_box)
         assert ev(est.estimator.dh).position_m * 2 <= ev(x0).position_m
         # Every frame decoded and judged (the first may come before its camera_info: bad input).

@@ -80,9 +80,12 @@ class PlannerSettings:
                                      '0 independent .. 1 nested; P(both see) = c min(p_l, p_r) + (1 - c) p_l p_r '
                                      '(iCub: 0.38 over uniform configurations, tools.detector_bench; 0.59 over the attempts AL makes, '
                                      'tools.visibility_attempts)', (0.0, 1.0))
-    occlusion_per_eye: bool = setting(False, 'Stereo (use_right_eye): learn where each eye sees the hand (one '
+    occlusion_per_eye: bool = setting(True, 'Stereo (use_right_eye): learn where each eye sees the hand (one '
                                       "occlusion model per eye, from the detector's per-eye verdicts) and plan "
                                       'the chance that either does; false: one model of whether the pair saw it')
+    eye_occlusion_length_scale: float = setting(0.2, 'Kernel length scale of the per-eye occlusion models (normalised '
+                                                'joints): shorter than the pair\'s, as each eye fails where the other '
+                                                'sees', (1e-4, 10.0))
 
     def __post_init__(self) -> None:
         if self.occlusion_prior not in OCCLUSION_PRIORS:
@@ -152,7 +155,7 @@ class Planner:
         #: One occlusion model per eye (a stereo pair with ``occlusion_per_eye``), else empty.
         self.eye_occlusion: dict[str, OcclusionModel] = {}
         if len(self.eyes) == 2 and self.settings.occlusion_per_eye:
-            self.eye_occlusion = {eye: OcclusionModel(box, self.settings.occlusion_length_scale,
+            self.eye_occlusion = {eye: OcclusionModel(box, self.settings.eye_occlusion_length_scale,
                                                       self.settings.occlusion_a0, self.settings.occlusion_b0)
                                   for eye in self.eyes}
         self.visibility = None

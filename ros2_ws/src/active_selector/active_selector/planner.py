@@ -80,9 +80,10 @@ class PlannerSettings:
                                      '0 independent .. 1 nested; P(both see) = c min(p_l, p_r) + (1 - c) p_l p_r '
                                      '(iCub: 0.38 over uniform configurations, tools.detector_bench; 0.59 over the attempts AL makes, '
                                      'tools.visibility_attempts)', (0.0, 1.0))
-    occlusion_per_eye: bool = setting(True, 'Stereo (use_right_eye): learn where each eye sees the hand (one '
+    occlusion_per_eye: bool = setting(False, 'Stereo (use_right_eye): learn where each eye sees the hand (one '
                                       "occlusion model per eye, from the detector's per-eye verdicts) and plan "
-                                      'the chance that either does; false: one model of whether the pair saw it')
+                                      'the chance that either does; false (the default: no better on held-out '
+                                      'seeds, docs/selector.md): one model of whether the pair saw it')
     eye_occlusion_length_scale: float = setting(0.2, 'Kernel length scale of the per-eye occlusion models (normalised '
                                                 'joints): shorter than the pair\'s, as each eye fails where the other '
                                                 'sees', (1e-4, 10.0))

@@ -111,7 +111,7 @@ def test_each_eye_learns_its_own_verdicts():
     off = Planner(ARM, PoseDependentNoise(), PlannerSettings(occlusion_per_eye=False), eyes=('left', 'right'))
     assert off.eye_occlusion == {} and off.cost(ARM.dh, sampling.initial_covariance(7), pair).eye_occlusion is None
     assert pl.eye_occlusion['left'].length_scale == 0.2 and pl.occlusion.length_scale == 0.5
-    assert Planner(ARM, PoseDependentNoise(), eyes=('left', 'right')).eye_occlusion, 'on by default'
+    assert not Planner(ARM, PoseDependentNoise(), eyes=('left', 'right')).eye_occlusion, 'off by default'
     with pytest.raises(ValueError, match="eyes must name.*'left', 'left'"):
         Planner(ARM, PoseDependentNoise(), eyes=('left', 'left'))
 

@@ -413,7 +413,8 @@ class CalibrationLoop:
         sel = self.selection
         source = '' if sel is None else ('pose_list' if sel.optimizer.startswith('pose_list') else sel.optimizer)
         eyes = self.frame_eyes
-        self._late = (self.frame_stamp, reached) if self.detected and eyes is None else None
+        late = self.detected and eyes is None and outcome.informs_visibility
+        self._late = (self.frame_stamp, reached) if late else None
         a = self.planner.record(self.target, reached, outcome, self.detected, self.selection_seconds,
                                 0 if sel is None else sel.refused, 0 if sel is None else sel.refused_paths, source,
                                 eyes)

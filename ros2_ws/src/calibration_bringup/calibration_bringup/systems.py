@@ -159,8 +159,7 @@ ABLATION: tuple[AblationStep, ...] = (
     AblationStep('whole-marker', "the visibility prior asks for the whole marker inside the image (margin 2% plus "
                  "half the marker's projected width, instead of a fixed 6%)",
                  _keys('selector', 'visibility_margin', 'visibility_marker_widths')),
-    AblationStep('stereo', 'both eyes: one detection from both images, the selection planned for either eye '
-                 'with an occlusion model per eye',
+    AblationStep('stereo', 'both eyes: one detection from both images, the selection planned for either eye',
                  _keys('detector', 'use_right_eye') + _keys('selector', 'use_right_eye')),
 )
 

@@ -41,6 +41,13 @@ from .planner import Attempt, Planner
 
 __all__ = ['Phase', 'LoopSettings', 'Iteration', 'LoopStateError', 'CalibrationLoop']
 
+
+def _same_stamp(a: float, b: float) -> bool:
+    """Whether two stamps [s] name one frame: they come through different messages (a header, a
+    '%.9f' string), so equal to a microsecond rather than bit for bit."""
+    return abs(a - b) < 1e-6
+
+
 class Phase(enum.Enum):
     WAITING = 'waiting for inputs'
     MOVING = 'moving'
@@ -276,7 +283,7 @@ class CalibrationLoop:
         """Whether each eye saw the hand in the frame stamped ``t`` (an eye not named was not
         judged); the planner's per-eye occlusion models learn them with the attempt that frame decides."""
         eyes = {str(k): bool(v) for k, v in eyes.items()}
-        if self._late is not None and abs(t - self._late[0]) < 1e-6:
+        if self._late is not None and _same_stamp(t, self._late[0]):
             self.planner.learn_eyes(self._late[1], eyes)     # the attempt ended on its frame and verdict
             self._late = None
         elif self._same_frame(t):
@@ -286,8 +293,7 @@ class CalibrationLoop:
 
     def _same_frame(self, t: float) -> bool:
         """Whether ``t`` stamps the frame that decided the attempt."""
-        # The stamps come through different messages (a header, a '%.9f' string): equal to a nanosecond.
-        return self.frame_stamp is not None and abs(t - self.frame_stamp) < 1e-6
+        return self.frame_stamp is not None and _same_stamp(t, self.frame_stamp)
 
     def bad_frame(self, t: float, reason: str) -> bool:
         """A frame stamped ``t`` the detector could not judge (``reason``): not evidence either way.

@@ -1,8 +1,8 @@
 """What the selector decides, without ROS: next target, occlusion learning, movement accounting.
 
 :class:`Planner` holds one strategy (R, AL, UCSAL, CCSAL), the occlusion model it learns from
-attempt outcomes (with two eyes also one per eye, from each eye's own verdict), the noise model it uses to predict ``R(theta)``, and the history of visited
-configurations. With a collision model it never selects a configuration inside the margins nor one
+attempt outcomes (with two eyes also one per eye, from each eye's own verdict), the noise model
+it uses to predict ``R(theta)``, and the history of visited configurations. With a collision model it never selects a configuration inside the margins nor one
 whose straight joint-space path from where the arm is leaves them (refusals are counted per
 selection). A list of poses (reviewed from a plan, or taught by hand) is visited first, each
 checked the same way, before the strategy takes over; :meth:`Planner.plan` plans such a list from
@@ -365,10 +365,10 @@ class Planner:
         self.movement_deg += float(np.degrees(np.sum(np.abs(reached - prev))))
         # An unreached pose, or one no frame was judged at, says nothing about visibility.
         if outcome.informs_visibility and detected is not None:
-            self.occlusion.add(np.clip(reached, self.model.calibration_box[:, 0], self.model.calibration_box[:, 1]),
-                               detected)
-            self.learn_eyes(reached, eyes if eyes is not None else
-                            ({} if detected else dict.fromkeys(self.eye_occlusion, False)))
+            theta = self._in_box(reached)
+            self.occlusion.add(theta, detected)
+            self._add_eyes(theta, eyes if eyes is not None else
+                           ({} if detected else dict.fromkeys(self.eye_occlusion, False)))
         attempt = Attempt(len(self.history) + 1, np.asarray(target, dtype=float), reached, outcome,
                           bool(detected), self.movement_deg, selection_seconds, refused, refused_paths, source)
         self.history.append(attempt)
@@ -378,8 +378,14 @@ class Planner:
         """Teach each eye's occlusion model whether that eye saw the hand at ``reached`` (L,) (an
         eye not in ``eyes`` learns nothing): :meth:`record` does, or the caller once the verdicts
         arrive after an attempt recorded without them."""
-        theta = np.clip(np.asarray(reached, dtype=float), self.model.calibration_box[:, 0],
-                        self.model.calibration_box[:, 1])
+        self._add_eyes(self._in_box(reached), eyes)
+
+    def _in_box(self, q: ArrayLike) -> NDArray[np.float64]:
+        """``q`` (L,) clipped to the calibration box, where the occlusion models live."""
+        box = self.model.calibration_box
+        return np.clip(np.asarray(q, dtype=float), box[:, 0], box[:, 1])
+
+    def _add_eyes(self, theta: NDArray[np.float64], eyes: Mapping[str, bool]) -> None:
         for eye, model in self.eye_occlusion.items():
             if eye in eyes:
                 model.add(theta, bool(eyes[eye]))

@@ -49,7 +49,7 @@ optimizer, algorithm, max_evals, n_candidates, refine_starts, refine_evals, loca
 repeat_tolerance (StrategySettings); penalty_a, penalty_b, occlusion_length_scale,
 occlusion_a0, occlusion_b0, occlusion_prior ('flat' | 'geometric'), occlusion_mode ('paper' |
 'expected' | 'gain'), criterion ('a_optimal' | 'v_optimal'), box_samples, q_length, q_angle, visibility_margin,
-visibility_marker_widths, eye_correlation, occlusion_per_eye (PlannerSettings);
+visibility_marker_widths, eye_correlation, occlusion_per_eye, eye_occlusion_length_scale (PlannerSettings);
 iterations, settle_tolerance (rad), settle_timeout (s, sim), settle_time (s, sim),
 outcome_timeout (s, sim), max_joint_speed_deg, speed_scale, stop_on_unreachable, resend_after (s, sim)
 (LoopSettings);

@@ -81,12 +81,13 @@ import numpy as np
 from . import cluster
 from .graph import (NODES, InProcessGraph, default_parameters, merge_parameters, recorder_available, ros_session,
                     with_detector_eyes)
+from .run_check import observations_used
 from .systems import SYSTEMS
 
 __all__ = ['METHODS', 'SYSTEMS', 'COLUMNS', 'Method', 'Seeds', 'RunSpec', 'GraphSettings', 'ExperimentConfig',
            'RunError', 'RunResult', 'ExperimentOutcome', 'derive_seeds', 'plan_runs', 'node_parameters',
            'run_settings', 'settings_hash', 'settings_difference', 'is_finished', 'run_graph', 'execute_run',
-           'parse_override',
+           'parse_override', 'run_cautions',
            'write_rows', 'read_rows', 'combine_runs', 'domain_ids', 'run_experiment', 'main']
 
 
@@ -730,6 +731,15 @@ class ExperimentOutcome:
     failures: list[str] = field(default_factory=list)
 
 
+def run_cautions(results: Sequence[RunResult]) -> list[str]:
+    """One line per finished run in which no observation reached the estimate (every attempt
+    failed or was refused): a result, not a failure, since the method's statistics rightly carry
+    it, but its final error is the initial guess's and the reader should know why."""
+    return [f'{r.spec.label}: no observation reached the estimate in its {len(r.rows) - 1} iterations; '
+            "its final error is the initial guess's"
+            for r in results if r.rows is not None and not observations_used(row['outcome'] for row in r.rows[1:])]
+
+
 def _store(result: RunResult, root: Path, run_hash: str) -> None:
     """Write a finished task's files; the CSV last, and only for a run that ended well."""
     spec = result.spec
@@ -785,6 +795,8 @@ def _run_all(todo: list[RunSpec], config: ExperimentConfig, record: bool, hashes
                     last = result.rows[-1]
                     note = (f"done in {result.wall_s:.0f} s on {result.host}, final {last['position_mm']:.1f} mm / "
                             f"{last['orientation_deg']:.2f} deg, movement {last['movement_deg']:.0f} deg")
+                    if not observations_used(r['outcome'] for r in result.rows[1:]):
+                        note += ', NO OBSERVATION USED (the final estimate is the initial guess)'
                 outcome.results.append(replace(result, log=None, mcap=None))
                 bar.update(1)
                 tqdm.write(f'{spec.label}: {note}', file=stream)
@@ -852,6 +864,8 @@ def run_experiment(config: ExperimentConfig, stream: TextIO = sys.stderr) -> Exp
 
         outputs = experiment_figures.render(root)
         stream.write(f'experiment: summary {root / "summary.md"}, figures {", ".join(p.name for p in outputs)}\n')
+    for c in run_cautions(outcome.results):
+        stream.write(f'experiment: CAUTION {c}\n')
     for f in outcome.failures:
         stream.write(f'experiment: FAILED {f}\n')
     return outcome

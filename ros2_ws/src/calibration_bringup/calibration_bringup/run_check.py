@@ -1,8 +1,10 @@
 """Is a finished run a result to trust? (``run_calibration.sh`` asks after the report; no rclpy.)
 
 A run can finish all its iterations and still be wrong: an estimator that stopped taking
-observations ends most iterations ``timeout``, and an offline re-run of the bag whose final DH
-table differs from the online estimate means the bag and the live graph saw different data.
+observations ends most iterations ``timeout``, a run in which no observation reached the estimate
+(the hand never seen, or every sighting refused) ends at its initial guess, and an offline re-run
+of the bag whose final DH table differs from the online estimate means the bag and the live graph
+saw different data.
 ``python -m calibration_bringup.run_check DIR`` reads ``DIR/metrics.csv`` and ``DIR/report.md``
 (both written by ``calibration_report``), prints one line per problem and exits 1 if there is
 one, 0 otherwise.
@@ -20,13 +22,15 @@ import csv
 import json
 import re
 import sys
-from collections.abc import Sequence
+from collections import Counter
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 from body_schema.noise import CAUTION_ALPHA, InnovationCheck
+from calibration_interfaces.outcome import Outcome
 
-__all__ = ['CheckSettings', 'check_rows', 'dh_difference', 'check_run', 'noise_law_cautions', 'main']
+__all__ = ['CheckSettings', 'observations_used', 'check_rows', 'dh_difference', 'check_run', 'noise_law_cautions', 'main']
 
 #: The report's line with the largest |offline - online| difference of the final DH tables
 #: (``dh_estimator.evaluate.summary_text``).
@@ -66,6 +70,12 @@ class CheckSettings:
             raise ValueError(f'noise_law_alpha must be in (0, 1), got {self.noise_law_alpha}')
 
 
+def observations_used(outcomes: Iterable[str]) -> int:
+    """How many of a run's iteration outcomes moved the estimate: accepted, or used as an outlier
+    under the robust loss (nothing else does)."""
+    return sum(o in (Outcome.ACCEPTED, Outcome.OUTLIER) for o in outcomes)
+
+
 def check_rows(rows: Sequence[dict[str, str]], dh_diff: float | None,
                settings: CheckSettings = CheckSettings()) -> list[str]:
     """The problems of a run, from the rows of its ``metrics.csv`` and its final DH difference.
@@ -97,6 +107,11 @@ def check_rows(rows: Sequence[dict[str, str]], dh_diff: float | None,
     except KeyError as exc:
         raise ValueError(f'metrics.csv has no column {exc}') from None
     problems = []
+    if observations_used(r['outcome'] for r in iterations) == 0:
+        seen = Counter(r['outcome'] for r in iterations).most_common()
+        problems.append(f'no observation reached the estimate in {len(iterations)} iterations ('
+                        + ', '.join(f'{n} {o}' for o, n in seen) + '): the final estimate is the initial '
+                        'guess; check that the camera sees the marker inside the calibration box')
     if timeouts > settings.max_timeouts * len(iterations):
         problems.append(f'{timeouts} of {len(iterations)} iterations ended "timeout" (more than '
                         f'{settings.max_timeouts:.0%}): the estimator stalled or lost its inputs')

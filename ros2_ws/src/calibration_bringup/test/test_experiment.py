@@ -283,6 +283,20 @@ def test_combine_takes_only_finished_planned_runs(tmp_path: Path) -> None:
         [('AL', '0'), ('R', '0'), ('AL', '1')]
 
 
+def test_a_run_that_never_used_an_observation_is_cautioned() -> None:
+    """Issue 31's seed 30 (per-eye occlusion models): 50 attempts, none seen, and nothing said."""
+    def result(method: str, outcomes: list[str]) -> ex.RunResult:
+        spec = ex.RunSpec(method, 30, 30, len(outcomes))
+        rows = [{'outcome': o} for o in ['initial', *outcomes]]
+        return ex.RunResult(spec, rows, None, None, None, '', '', 215, 1.0)
+
+    results = [result('AL', ['failed'] * 50), result('R', ['failed'] * 49 + ['outlier']),
+               result('CCSAL', ['accepted', 'failed']),
+               ex.RunResult(ex.RunSpec('UCSAL', 30, 30, 50), None, 'RunError: x', None, None, '', '', 216, 1.0)]
+    assert ex.run_cautions(results) == ['AL rep 30 (seed 30): no observation reached the estimate in its 50 '
+                                        "iterations; its final error is the initial guess's"]
+
+
 def test_domain_ids_are_distinct_and_valid() -> None:
     ids = ex.domain_ids(ex.ExperimentConfig(jobs=3))
     assert len(set(ids)) == 3 and all(215 <= d <= 232 for d in ids)

@@ -35,6 +35,15 @@ def _report(rows: list[IterationRow], offset: float) -> str:
     return summary_text(ev)
 
 
+def _write_run(directory: Path, rows: list[IterationRow], offset: float) -> None:
+    """The run directory calibration_report leaves: ``metrics.csv`` and ``report.md``."""
+    with (directory / 'metrics.csv').open('w', newline='') as f:
+        w = csv.DictWriter(f, fieldnames=[x.name for x in fields(IterationRow)])
+        w.writeheader()
+        w.writerows(_csv(rows))
+    (directory / 'report.md').write_text(_report(rows, offset))
+
+
 def test_a_healthy_run_has_no_problem() -> None:
     rows = _rows(['accepted'] * 9 + ['timeout'])                           # 10 % timeouts: within 20 %
     assert check_rows(_csv(rows), dh_difference(_report(rows, 0.0))) == []
@@ -46,6 +55,25 @@ def test_a_stalled_estimator_is_reported() -> None:
     (problem,) = check_rows(rows, 0.0)
     assert '3 of 5 iterations ended "timeout"' in problem
     assert check_rows(rows, 0.0, CheckSettings(max_timeouts=0.6)) == []
+
+
+def test_a_run_that_never_used_an_observation_is_reported() -> None:
+    """Issue 31's seed 30 with per-eye occlusion models: 50 attempts, none seen, exit 0 before."""
+    rows = _csv(_rows(['failed'] * 48 + ['unreachable', 'rejected']))
+    (problem,) = check_rows(rows, 0.0)
+    assert 'no observation reached the estimate in 50 iterations' in problem
+    assert '48 failed, 1 unreachable, 1 rejected' in problem and 'initial guess' in problem
+    # One observation used, even as an outlier under the robust loss, is an estimate that moved.
+    for used in ('accepted', 'outlier'):
+        assert check_rows(_csv(_rows(['failed'] * 9 + [used])), 0.0) == []
+
+
+def test_a_run_that_never_saw_the_hand_exits_1(tmp_path: Path) -> None:
+    _write_run(tmp_path, _rows(['failed'] * 5), 0.0)
+    out = subprocess.run([sys.executable, '-m', 'calibration_bringup.run_check', str(tmp_path)],
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 1
+    assert 'UNHEALTHY RUN: no observation reached the estimate in 5 iterations (5 failed)' in out.stderr
 
 
 def test_an_offline_rerun_that_disagrees_is_reported() -> None:
@@ -72,12 +100,7 @@ def test_bad_thresholds_and_files_are_named(tmp_path: Path) -> None:
 
 
 def test_the_command_exits_1_and_says_why(tmp_path: Path) -> None:
-    rows = _rows(['accepted'] * 5, offline_mm=28.3)
-    with (tmp_path / 'metrics.csv').open('w', newline='') as f:
-        w = csv.DictWriter(f, fieldnames=[f.name for f in fields(IterationRow)])
-        w.writeheader()
-        w.writerows(_csv(rows))
-    (tmp_path / 'report.md').write_text(_report(rows, 0.02))
+    _write_run(tmp_path, _rows(['accepted'] * 5, offline_mm=28.3), 0.02)
     cmd = [sys.executable, '-m', 'calibration_bringup.run_check', str(tmp_path)]
     bad = subprocess.run(cmd, capture_output=True, text=True, timeout=60)
     assert bad.returncode == 1 and 'UNHEALTHY RUN' in bad.stderr and '2.00e-02' in bad.stderr, bad.stderr

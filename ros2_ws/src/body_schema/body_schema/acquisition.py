@@ -90,7 +90,7 @@ from scipy.stats import qmc
 
 from . import kinematics
 from .extrinsics import Extrinsics
-from .noise import ConstantNoise, NoiseModel, stereo_covariance
+from .noise import ConstantNoise, NoiseModel, stereo_covariance, view_geometry
 from .occlusion import OcclusionModel, VisibilityPrior
 from .robot import MarkerPlacement
 from .sampling import as_rng
@@ -236,6 +236,11 @@ def box_pose_weight(base: ArrayLike, dh: ArrayLike, box_configs: ArrayLike,
     jac = kinematics.pose_jacobian_dh(base, dh, q)               # (M, 6, n)
     w = np.array([s_pos ** -2] * 3 + [s_rot ** -2] * 3)
     return np.einsum('mki,k,mkj->ij', jac, w, jac) / q.shape[0]
+
+
+#: A camera's view of the hand's markers: their poses (N, M, 4, 4) and :func:`~body_schema.noise.view_geometry`
+#: ``r``, ``phi`` (N, M), shared by the noise law and the visibility prior of one cost evaluation.
+_View = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]
 
 
 @dataclass
@@ -387,14 +392,13 @@ class AcquisitionCost:
         H = self._jacobian(frames)                                               # (N, 6, n)  # noqa: N806
         hp = H @ self.P
         hph = hp @ np.swapaxes(H, -1, -2)                                        # predicted pose covariance
+        views = self._views(hand)
         if len(self._cameras) == 1:
-            # One pose goes through the noise model's single-pose path (3x cheaper; the local search).
-            R = self.noise.hand_covariance(self._cameras[0], hand[0] if len(hand) == 1 else hand,  # noqa: N806
-                                           self.markers).reshape(-1, 6, 6)
+            R = self._covariance(self._cameras[0], hand, views[0])                      # noqa: N806
             gain = information_gain(hp, hph + R, self.weight)
-            prior = None if self.visibility is None else self._visibility(hand, hph)
+            prior = None if self.visibility is None else self._visibility(hand, hph, view=views[0])
         else:
-            gain, prior = self._stereo_terms(hand, hp, hph, thetas)
+            gain, prior = self._stereo_terms(hand, hp, hph, thetas, views)
             if self.eye_occlusion is not None:
                 return gain, prior, hand[:, 0, 3]                             # each camera's own model
         if self.occlusion is not None:
@@ -406,15 +410,35 @@ class AcquisitionCost:
             eta = np.ones(hand.shape[0]) if prior is None else prior
         return gain, eta, hand[:, 0, 3]
 
+    def _views(self, hand: NDArray[np.float64]) -> list[_View | None]:
+        """Each camera's view of the markers of hands (N, 4, 4), computed once for the noise law
+        and the visibility prior; None for each without markers (those raise where they are used)."""
+        if not self.markers:
+            return [None] * len(self._cameras)
+        poses = hand[:, None] @ self._marker_frames                             # (N, M, 4, 4)
+        return [(poses, *view_geometry(cam, poses)) for cam in self._cameras]
+
+    def _covariance(self, camera: NDArray[np.float64], hand: NDArray[np.float64], view: _View | None
+                    ) -> NDArray[np.float64]:
+        """The noise law's ``R`` (N, 6, 6) of hands (N, 4, 4) seen by ``camera`` (4, 4)."""
+        if len(hand) == 1:
+            # One pose goes through the noise law's single-pose path (3x cheaper; the local search).
+            return self.noise.hand_covariance(camera, hand[0], self.markers,
+                                              None if view is None else tuple(v[0] for v in view)).reshape(-1, 6, 6)
+        return self.noise.hand_covariance(camera, hand, self.markers, view)
+
     def _pair_outcomes(self, hand: NDArray[np.float64], hph: NDArray[np.float64],
-                       thetas: ArrayLike | None = None, learned: bool = True
+                       thetas: ArrayLike | None = None, learned: bool = True,
+                       views: Sequence[_View | None] | None = None,
                        ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         """Probabilities (N,) that both cameras, only the first, only the second see the hand: from
         the geometric visibility, or (with :attr:`eye_occlusion` and ``learned``; needs ``thetas``
-        (N, L)) each camera's occlusion model with its geometric prior."""
+        (N, L)) each camera's occlusion model with its geometric prior. ``views``: :meth:`_views`
+        of ``hand`` when already computed."""
         if self.visibility is not None:
             stds = self._pose_stds(hph)
-            p1, p2 = (self._visibility(hand, hph, cam, stds) for cam in self._cameras)
+            views = self._views(hand) if views is None else views
+            p1, p2 = (self._visibility(hand, hph, cam, stds, view) for cam, view in zip(self._cameras, views))
         if self.eye_occlusion is not None and learned:
             u = np.atleast_2d(np.asarray(thetas, dtype=float))
             if self.visibility is None:
@@ -426,21 +450,22 @@ class AcquisitionCost:
         both = c * np.minimum(p1, p2) + (1.0 - c) * p1 * p2
         return both, p1 - both, p2 - both
 
-    def _pair_covariances(self, hand: NDArray[np.float64]) -> list[NDArray[np.float64]]:
-        """``R`` (N, 6, 6) of the outcomes both, first only, second only."""
-        # One pose goes through the noise model's single-pose path, as with one camera (the local search).
-        poses = hand[0] if len(hand) == 1 else hand
-        r1, r2 = (self.noise.hand_covariance(cam, poses, self.markers).reshape(-1, 6, 6) for cam in self._cameras)
+    def _pair_covariances(self, hand: NDArray[np.float64], views: Sequence[_View | None] | None = None
+                          ) -> list[NDArray[np.float64]]:
+        """``R`` (N, 6, 6) of the outcomes both, first only, second only (``views``: see :meth:`_pair_outcomes`)."""
+        views = self._views(hand) if views is None else views
+        r1, r2 = (self._covariance(cam, hand, view) for cam, view in zip(self._cameras, views))
         return [stereo_covariance(np.stack([r1, r2], axis=-3), self.noise), r1, r2]
 
     def _stereo_terms(self, hand: NDArray[np.float64], hp: NDArray[np.float64], hph: NDArray[np.float64],
-                      thetas: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+                      thetas: ArrayLike, views: Sequence[_View | None]
+                      ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
         """Expected gain given success and the probability of success (None without a visibility
         prior or per-camera occlusion models)."""
-        covariances = self._pair_covariances(hand)
+        covariances = self._pair_covariances(hand, views)
         if self.visibility is None and self.eye_occlusion is None:
             return information_gain(hp, hph + covariances[0], self.weight), None
-        outcomes = self._pair_outcomes(hand, hph, thetas)
+        outcomes = self._pair_outcomes(hand, hph, thetas, views=views)
         seen = sum(outcomes)
         # The three outcomes' gains in one stacked solve (3, N): a third of the calls per evaluation.
         gains = information_gain(hp, hph + np.stack(covariances), self.weight)
@@ -462,15 +487,18 @@ class AcquisitionCost:
 
     def _visibility(self, hand: NDArray[np.float64], hph: NDArray[np.float64],
                     camera: NDArray[np.float64] | None = None,
-                    stds: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None) -> NDArray[np.float64]:
+                    stds: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
+                    view: _View | None = None) -> NDArray[np.float64]:
         """Geometric detection probability (N,) of hands (N, 4, 4) with predicted pose covariances
         (N, 6, 6) by ``camera`` (4, 4); by either camera of a pair when it is None. ``stds``: the
-        covariances' :meth:`_pose_stds` when already computed."""
+        covariances' :meth:`_pose_stds`, ``view``: that camera's :meth:`_views`, when already computed."""
         if camera is None and len(self._cameras) == 2:
             return sum(self._pair_outcomes(hand, hph, learned=False))
         pos_std, rot_std = self._pose_stds(hph) if stds is None else stds
-        return self.visibility.probability(self._cameras[0] if camera is None else camera,
-                                           hand[:, None] @ self._marker_frames, pos_std, rot_std)
+        camera = self._cameras[0] if camera is None else camera
+        if view is None:
+            return self.visibility.probability(camera, hand[:, None] @ self._marker_frames, pos_std, rot_std)
+        return self.visibility.probability(camera, view[0], pos_std, rot_std, view[1:])
 
     def visibility_probability(self, thetas: ArrayLike, camera: int | None = None) -> NDArray[np.float64]:
         """The geometric prior alone at configurations (N, L) -> (N,), as the current estimate predicts it:

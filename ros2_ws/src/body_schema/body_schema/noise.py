@@ -29,6 +29,7 @@ Observations are ordered ``(p_x, p_y, p_z, w_x, w_y, w_z)`` as in :mod:`body_sch
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Protocol, Sequence
 
@@ -132,7 +133,9 @@ class NoiseModel(Protocol):
         """Observation covariance, shape (..., 6, 6)."""
 
     def hand_covariance(self, camera_pose: ArrayLike, hand_pose: ArrayLike,
-                        markers: Sequence[MarkerPlacement]) -> NDArray[np.float64]:
+                        markers: Sequence[MarkerPlacement],
+                        view: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]] | None = None,
+                        ) -> NDArray[np.float64]:
         """Predicted covariance of a hand observation, shape (..., 6, 6)."""
 
 
@@ -162,7 +165,9 @@ class _Base:
         return _assemble(*self.variances(r, phi_deg))
 
     def hand_covariance(self, camera_pose: ArrayLike, hand_pose: ArrayLike,
-                        markers: Sequence[MarkerPlacement]) -> NDArray[np.float64]:
+                        markers: Sequence[MarkerPlacement],
+                        view: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]] | None = None,
+                        ) -> NDArray[np.float64]:
         """Predicted covariance for a hand pose: the best-placed marker facing the camera.
 
         Among the markers facing the camera (``phi < 90 deg``), the one with the smallest
@@ -176,6 +181,10 @@ class _Base:
         camera_pose : array_like, shape (4, 4)
         hand_pose : array_like, shape (..., 4, 4)
         markers : sequence of MarkerPlacement
+        view : tuple of ndarray, optional
+            The markers' poses ``hand_pose @ hand_T_marker`` (..., M, 4, 4) and their
+            :func:`view_geometry` ``r, phi`` (..., M), when the caller has them already (the
+            selector's cost shares them with the visibility prior).
 
         Returns
         -------
@@ -185,11 +194,16 @@ class _Base:
             raise ValueError('hand_covariance needs at least one marker placement')
         hand = np.asarray(hand_pose, dtype=float)
         camera = np.asarray(camera_pose, dtype=float)
-        mk = np.stack([m.hand_T_marker for m in markers])          # (M, 4, 4)
-        poses = hand[..., None, :, :] @ mk                          # (..., M, 4, 4)
-        r, phi = view_geometry(camera_pose, poses)                  # (..., M)
+        if view is None:
+            mk = np.stack([m.hand_T_marker for m in markers])      # (M, 4, 4)
+            poses = hand[..., None, :, :] @ mk                      # (..., M, 4, 4)
+            r, phi = view_geometry(camera_pose, poses)              # (..., M)
+        else:
+            poses, r, phi = view
         phi = np.minimum(phi, MAX_VIEW_ANGLE_DEG)
-        vp, vo = np.broadcast_arrays(*self.variances(r, phi))
+        vp, vo = self.variances(r, phi)
+        if np.shape(vp) != np.shape(vo):
+            vp, vo = np.broadcast_arrays(vp, vo)
         rank = np.where(phi < MAX_VIEW_ANGLE_DEG, vp, np.inf)
         k = self.depth_ratio
         if hand.ndim == 2:          # one pose: plain indexing (this runs in every cost evaluation)
@@ -208,6 +222,14 @@ class _Base:
 #: against the built-in law, on 300 configurations of the iCub's box (seed 1, no pixel noise) seen by
 #: its 320x240 eyes with 3 cm markers.
 STEREO_POS, STEREO_ROT = 0.124, 1.40
+
+
+@functools.lru_cache(maxsize=8)
+def _stereo_scale(stereo_pos: float, stereo_rot: float) -> NDArray[np.float64]:
+    """Square roots of the stereo ratios per pose component (6,), read-only (every cost evaluation)."""
+    scale = np.sqrt(np.repeat([stereo_pos, stereo_rot], 3))
+    scale.setflags(write=False)
+    return scale
 
 
 def stereo_covariance(covariances: ArrayLike, model: NoiseModel) -> NDArray[np.float64]:
@@ -231,7 +253,7 @@ def stereo_covariance(covariances: ArrayLike, model: NoiseModel) -> NDArray[np.f
     if c.ndim < 3 or c.shape[-2:] != (6, 6) or c.shape[-3] < 2:
         raise ValueError(f'stereo_covariance needs (..., K >= 2, 6, 6) covariances, got shape {c.shape}')
     fused = np.linalg.inv(np.linalg.inv(c).sum(axis=-3))
-    scale = np.sqrt(np.repeat([model.stereo_pos, model.stereo_rot], 3))
+    scale = _stereo_scale(model.stereo_pos, model.stereo_rot)
     fused = fused * scale[:, None] * scale[None, :]
     return 0.5 * (fused + np.swapaxes(fused, -1, -2))
 

@@ -259,7 +259,8 @@ class VisibilityPrior:
             raise ValueError(f'VisibilityPrior needs 0 < floor < ceiling < 1, got {self.floor}, {self.ceiling}')
 
     def probability(self, camera_pose: ArrayLike, marker_poses: ArrayLike, position_std: ArrayLike = 0.0,
-                    orientation_std_deg: ArrayLike = 0.0) -> NDArray[np.float64]:
+                    orientation_std_deg: ArrayLike = 0.0,
+                    view: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None) -> NDArray[np.float64]:
         """Predicted detection probability of a hand.
 
         Parameters
@@ -272,6 +273,9 @@ class VisibilityPrior:
             Predicted standard deviation of the hand position [m].
         orientation_std_deg : array_like, shape (...) or ()
             Predicted standard deviation of the hand orientation [deg].
+        view : tuple of ndarray, optional
+            ``view_geometry(camera_pose, marker_poses)`` when the caller has it already (the
+            selector's cost computes it once for the noise law and this prior).
 
         Returns
         -------
@@ -279,7 +283,7 @@ class VisibilityPrior:
         """
         cam = np.asarray(camera_pose, dtype=float)
         poses = np.asarray(marker_poses, dtype=float)
-        r, phi = view_geometry(cam, poses)                                        # (..., M)
+        r, phi = view_geometry(cam, poses) if view is None else view             # (..., M)
         limit, margin = self.max_view_angle_deg, self.margin
         if self.marker_side is not None:
             width = self.camera.fx * self.marker_side / np.maximum(r, 1e-6)        # head-on width [px]

@@ -428,6 +428,28 @@ def test_stereo_single_evaluation_equals_batched(arm, box_configs, learned_occlu
     assert np.ptp(batch[0]) > 0 and np.ptp(batch[1]) > 0.1
 
 
+def test_one_view_per_camera_serves_the_noise_law_and_the_prior(arm, box_configs):
+    # A cost evaluation computes each camera's view of the markers once and hands it to both; each
+    # must get what it computes on its own, for its own camera (not the other eye's).
+    law = PoseDependentNoise(depth_ratio=4.0)
+    prior = VisibilityPrior(arm.camera, marker_side=0.03, margin_marker_widths=0.5)
+    _, stereo = _stereo(arm, box_configs, visibility=prior, noise=law)
+    qs = sampling.uniform_configs(arm.calibration_box, 16, 13)
+    hands = kinematics.forward_kinematics(arm.base, arm.dh, qs)
+    cams = [arm.camera_pose(eye) for eye in ('left', 'right')]
+    marker_poses = hands[:, None] @ np.stack([m.hand_T_marker for m in arm.markers])
+    for n in (len(hands), 1):                              # the Sobol batch and the local search's one pose
+        views = stereo._views(hands[:n])
+        both, r1, r2 = stereo._pair_covariances(hands[:n], views)
+        for cam, r in zip(cams, (r1, r2)):
+            own = law.hand_covariance(cam, hands[:n], arm.markers)
+            np.testing.assert_array_equal(r, own)
+        for cam, view in zip(cams, views):
+            np.testing.assert_array_equal(prior.probability(cam, view[0], 0.001, 0.5, view[1:]),
+                                          prior.probability(cam, marker_poses[:n], 0.001, 0.5))
+    assert not np.allclose(r1, r2)                         # the eyes' laws differ: a swap would show
+
+
 def test_per_eye_occlusion_without_attempts_is_the_geometric_either_eye(arm, box_configs, learned_occlusion):
     # Untaught, each eye's model returns its prior mean (the eye's geometric visibility): the
     # either-eye success probability and the gain are those of the shared model before it learns.

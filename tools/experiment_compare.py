@@ -3,7 +3,8 @@
 Two ``make experiment`` output directories with the same seed base meet the same real robots and
 initial guesses in each repetition, so their final errors pair up. For every method both ran, this
 prints each experiment's mean and median final position and orientation error and discarded
-attempts, the ratio of the means (second over first), and the paired test of
+attempts, the ratio of the means (second over first) with its 95% paired bootstrap interval over
+the shared repetitions (:func:`ratio_interval`), and the paired test of
 :func:`calibration_bringup.experiment_figures.paired_difference` (median difference, how often the
 second is lower, two-sided Wilcoxon p).
 
@@ -19,6 +20,7 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
+from scipy.stats import bootstrap
 
 from calibration_bringup.experiment_figures import MethodRuns, load_metrics, paired_difference
 
@@ -27,19 +29,42 @@ FIGURES = (('position_mm', 'position [mm]', 3), ('orientation_deg', 'orientation
            ('discarded', 'discarded', 1), ('movement_deg', 'movement [deg]', 0))
 
 
+def ratio_interval(first: MethodRuns, second: MethodRuns, column: str, confidence: float = 0.95,
+                   resamples: int = 10_000, seed: int = 0) -> tuple[float, float]:
+    """Percentile bootstrap interval of ``mean(second) / mean(first)`` over the shared repetitions,
+    resampled in pairs (a repetition's two runs meet the same robot and initial guess).
+
+    Returns
+    -------
+    low, high : float
+        NaN with fewer than two pairs or a constant ratio.
+    """
+    fa = dict(zip(first.repetitions.tolist(), first.final(column)))
+    fb = dict(zip(second.repetitions.tolist(), second.final(column)))
+    pairs = np.array([(fa[r], fb[r]) for r in sorted(fa.keys() & fb.keys())], dtype=float).reshape(-1, 2)
+    pairs = pairs[np.all(np.isfinite(pairs), axis=1)]
+    if len(pairs) < 2 or np.ptp(pairs[:, 1] / np.where(pairs[:, 0] == 0, np.nan, pairs[:, 0])) == 0:
+        return float('nan'), float('nan')
+    res = bootstrap((pairs[:, 0], pairs[:, 1]), lambda a, b, axis=-1: b.mean(axis) / a.mean(axis), paired=True,
+                    confidence_level=confidence, n_resamples=resamples, method='percentile', rng=seed)
+    return float(res.confidence_interval.low), float(res.confidence_interval.high)
+
+
 def compare(first: dict[str, MethodRuns], second: dict[str, MethodRuns], names: Sequence[str]) -> list[str]:
     """Markdown table rows comparing the methods both experiments ran."""
     a, b = names
-    lines = [f'| method | figure | {a}: mean (median) | {b}: mean (median) | {b} / {a} | pairs | '
-             f'median difference ({b} - {a}) | {b} lower | p |', '|---|---|---|---|---|---|---|---|---|']
+    lines = [f'| method | figure | {a}: mean (median) | {b}: mean (median) | {b} / {a} | 95% interval | pairs | '
+             f'median difference ({b} - {a}) | {b} lower | p |', '|---|---|---|---|---|---|---|---|---|---|']
     for method in [m for m in first if m in second]:
         for column, label, digits in FIGURES:
             fa, fb = first[method].final(column), second[method].final(column)
             # Second minus first: negative favours the second.
             n, median, second_lower, p = paired_difference(second[method], first[method], column)
+            low, high = ratio_interval(first[method], second[method], column)
+            interval = '-' if np.isnan(low) else f'{low:.2f}-{high:.2f}'
             lines.append(f'| {method} | {label} | {np.mean(fa):.{digits}f} ({np.median(fa):.{digits}f}) | '
                          f'{np.mean(fb):.{digits}f} ({np.median(fb):.{digits}f}) | {np.mean(fb) / np.mean(fa):.2f} | '
-                         f'{n} | {median:+.{digits}f} | {second_lower} | {p:.2g} |')
+                         f'{interval} | {n} | {median:+.{digits}f} | {second_lower} | {p:.2g} |')
     return lines
 
 

@@ -13,6 +13,7 @@ import json
 import re
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -213,6 +214,27 @@ def test_visibility_attempts_scores_every_grid_point_on_the_rendered_attempts(
     assert visibility_attempts.main([str(recorded_experiment), '--repetitions', '2']) == 1     # rep01 missing
 
 
+def test_experiment_compare_bounds_the_ratio_of_means_in_pairs() -> None:
+    from calibration_bringup.experiment_figures import MethodRuns
+    from tools.experiment_compare import ratio_interval
+
+    rng = np.random.default_rng(4)
+    base = rng.uniform(0.05, 0.2, 50)               # seeds differ much more than the two runs of a seed
+
+    def runs(final: np.ndarray, reps: np.ndarray) -> MethodRuns:
+        return MethodRuns('AL', reps, {'position_mm': np.stack([np.full_like(final, 100.0), final], axis=1)})
+
+    reps = np.arange(50)
+    first, second = runs(base, reps), runs(base * 1.1 * rng.lognormal(0.0, 0.03, 50), reps)
+    low, high = ratio_interval(first, second, 'position_mm')
+    assert low < 1.1 < high and high - low < 0.05   # paired: the seeds' spread cancels
+    # Unpaired, the same numbers would give an interval as wide as the seeds' spread: the pairing
+    # follows the repetitions, not the row order.
+    shuffled = runs(second.columns['position_mm'][::-1, 1], reps[::-1])
+    assert ratio_interval(first, shuffled, 'position_mm') == (low, high)
+    assert np.isnan(ratio_interval(first, runs(base[:1], reps[:1]), 'position_mm')[0])
+
+
 @pytest.mark.slow
 def test_experiment_compare_pairs_the_methods_both_ran(recorded_experiment: Path, tmp_path: Path,
                                                        capsys: pytest.CaptureFixture[str]) -> None:
@@ -232,6 +254,7 @@ def test_experiment_compare_pairs_the_methods_both_ran(recorded_experiment: Path
         w.writerows(rows)
     assert experiment_compare.main([str(recorded_experiment), str(tmp_path), '--names', 'a', 'b']) == 0
     table = {r[1]: r for r in _rows(capsys.readouterr().out, '| method | figure |')}
-    assert table['position [mm]'][0] == 'AL' and table['position [mm]'][5:8] == ['1', '-0.100', '1']
-    assert table['orientation [deg]'][4] == '1.00' and table['orientation [deg]'][6] == '+0.000'
+    # One pair has no interval.
+    assert table['position [mm]'][0] == 'AL' and table['position [mm]'][5:9] == ['-', '1', '-0.100', '1']
+    assert table['orientation [deg]'][4] == '1.00' and table['orientation [deg]'][7] == '+0.000'
     assert experiment_compare.main([str(tmp_path / 'nothing'), str(tmp_path)]) == 2

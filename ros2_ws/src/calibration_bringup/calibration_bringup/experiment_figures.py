@@ -31,6 +31,8 @@ from typing import Any, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from .run_check import observations_used
+
 __all__ = ['MethodRuns', 'load_metrics', 'paired_difference', 'Claim', 'paper_claims', 'claims_markdown',
            'summary_markdown', 'plot_all', 'render', 'main']
 
@@ -60,7 +62,8 @@ def _color(method: str) -> str:
 @dataclass
 class MethodRuns:
     """All runs of one method: each numeric column as an array (runs, iterations + 1), NaN-padded,
-    plus ``rejected``: the running count of observations the estimator's gate refused."""
+    plus ``rejected``: the running count of observations the estimator's gate refused, and (from
+    :func:`load_metrics`) ``used``: the running count of those that reached the estimate."""
 
     method: str
     repetitions: NDArray[np.int64]
@@ -118,14 +121,16 @@ def load_metrics(path: Path | Sequence[Path]) -> dict[str, MethodRuns]:
     for m in methods:
         reps = sorted(r for mm, r in runs if mm == m)
         n = max(max(runs[(m, r)]) for r in reps) + 1
-        cols = {c: np.full((len(reps), n), np.nan) for c in (*NUMERIC, 'rejected')}
+        cols = {c: np.full((len(reps), n), np.nan) for c in (*NUMERIC, 'rejected', 'used')}
         for i, r in enumerate(reps):
             for it, row in runs[(m, r)].items():
                 for c in NUMERIC:
                     cols[c][i, it] = _float(row.get(c, ''))     # time columns may be absent: NaN
                 cols['rejected'][i, it] = row.get('outcome') == 'rejected'
-            # Observations refused by the estimator's gate so far (NaN stays NaN past a run's end).
+                cols['used'][i, it] = observations_used([row.get('outcome', '')])
+            # Observations refused by the estimator's gate, and used, so far (NaN stays NaN past a run's end).
             cols['rejected'][i] = np.cumsum(cols['rejected'][i])
+            cols['used'][i] = np.cumsum(cols['used'][i])
         out[m] = MethodRuns(m, np.array(reps), cols)
     return out
 
@@ -289,6 +294,12 @@ def summary_markdown(data: dict[str, MethodRuns], system: str | None = None) -> 
                      f'{_pm(m.final("orientation_deg"), 2)} | {_pm(m.columns["position_mm"][:, 0], 1)} | '
                      f'{_pm(m.final("movement_deg"), 0)} | {_relative_to_al(data, name, "movement_deg")} | '
                      f'{_pm(m.final("discarded"), 1)} | {_pm(m.final("rejected"), 1)} |')
+    unused = [f'{name} rep {rep}' for name, m in data.items() if 'used' in m.columns
+              for rep, used in zip(m.repetitions.tolist(), m.final('used')) if used == 0]
+    if unused:
+        # Results, kept in the statistics above; the reader should know why they sit at the initial error.
+        lines += ['', f'No observation reached the estimate in {len(unused)} run(s), whose final error is '
+                      f'the initial guess\'s: {", ".join(unused)}.']
     lines += ['', '| method | position [mm] median | orientation [deg] median | error / AL (mean position) |',
               '|---|---|---|---|']
     for name, m in data.items():

@@ -81,6 +81,27 @@ def test_summary_reports_final_statistics(experiment_dir: Path) -> None:
             assert p.read_bytes()[:8] == b'\x89PNG\r\n\x1a\n' and p.stat().st_size > 5000
 
 
+def test_a_run_that_used_no_observation_is_named_in_the_summary(tmp_path: Path) -> None:
+    runs = ex.plan_runs(ex.ExperimentConfig(repetitions=REPS, iterations=ITERATIONS, methods=('R', 'AL')))
+    for spec in runs:
+        rows = _rows(spec.method, spec.repetition)
+        if (spec.method, spec.repetition) == ('AL', 1):
+            rows = [{**r, 'outcome': 'failed'} if r['iteration'] else r for r in rows]
+        if (spec.method, spec.repetition) == ('R', 2):                # one outlier is an observation used
+            rows = [{**r, 'outcome': 'outlier' if r['iteration'] == 3 else 'failed'} if r['iteration'] else r
+                    for r in rows]
+        ex.write_rows(spec.path(tmp_path, '.csv'), rows)
+    ex.combine_runs(tmp_path, runs, tmp_path / 'metrics.csv')
+    data = figs.load_metrics(tmp_path / 'metrics.csv')
+    assert data['AL'].final('used').tolist() == [5, 0, 4]   # rep 2: one rejected by the gate
+    assert data['R'].final('used').tolist() == [5, 5, 1]
+    assert "No observation reached the estimate in 1 run(s), whose final error is the initial guess's: " \
+           'AL rep 1.' in figs.summary_markdown(data)
+    figs.render(tmp_path)
+    assert 'the initial guess\'s: AL rep 1.' in (tmp_path / 'summary.md').read_text()
+    assert 'No observation' not in figs.summary_markdown({'R': data['R']})     # an outlier was used
+
+
 def test_replot_from_run_files_when_the_combined_csv_is_missing(experiment_dir: Path) -> None:
     (experiment_dir / 'metrics.csv').unlink()
     assert figs.main([str(experiment_dir)]) == 0

@@ -64,7 +64,9 @@ def test_kinematics_bench_measures_every_row() -> None:
     assert [r[0] for r in rows] == [
         'batched FK, 1000 configurations', 'pose Jacobian w.r.t. 28 DH parameters',
         'EKF update (paper: 1 linearisation)', 'EKF update, iterated (5 linearisations)',
-        'acquisition cost, one evaluation (50 occlusion samples)', 'AL selection, DIRECT-L, 2000 evaluations']
+        'acquisition cost, one evaluation (50 occlusion samples)',
+        'acquisition cost, one stereo evaluation (the local search: both eyes, visibility prior)',
+        'AL selection, DIRECT-L, 2000 evaluations']
     assert all(float(r[1].split()[0]) > 0 for r in rows)
 
 

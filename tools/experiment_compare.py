@@ -20,34 +20,21 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
-from scipy.stats import bootstrap
 
-from calibration_bringup.experiment_figures import MethodRuns, load_metrics, paired_difference
+from calibration_bringup.experiment_figures import MethodRuns, load_metrics, paired_difference, paired_ratio_interval
 
 #: (CSV column, label, digits) compared.
 FIGURES = (('position_mm', 'position [mm]', 3), ('orientation_deg', 'orientation [deg]', 3),
            ('discarded', 'discarded', 1), ('movement_deg', 'movement [deg]', 0))
 
 
-def ratio_interval(first: MethodRuns, second: MethodRuns, column: str, confidence: float = 0.95,
-                   resamples: int = 10_000, seed: int = 0) -> tuple[float, float]:
-    """Percentile bootstrap interval of ``mean(second) / mean(first)`` over the shared repetitions,
-    resampled in pairs (a repetition's two runs meet the same robot and initial guess).
-
-    Returns
-    -------
-    low, high : float
-        NaN with fewer than two pairs or a constant ratio.
-    """
+def ratio_interval(first: MethodRuns, second: MethodRuns, column: str) -> tuple[float, float]:
+    """95% interval of ``mean(second) / mean(first)`` of the final ``column`` over the shared
+    repetitions (:func:`~calibration_bringup.experiment_figures.paired_ratio_interval`)."""
     fa = dict(zip(first.repetitions.tolist(), first.final(column)))
     fb = dict(zip(second.repetitions.tolist(), second.final(column)))
-    pairs = np.array([(fa[r], fb[r]) for r in sorted(fa.keys() & fb.keys())], dtype=float).reshape(-1, 2)
-    pairs = pairs[np.all(np.isfinite(pairs), axis=1)]
-    if len(pairs) < 2 or np.ptp(pairs[:, 1] / np.where(pairs[:, 0] == 0, np.nan, pairs[:, 0])) == 0:
-        return float('nan'), float('nan')
-    res = bootstrap((pairs[:, 0], pairs[:, 1]), lambda a, b, axis=-1: b.mean(axis) / a.mean(axis), paired=True,
-                    confidence_level=confidence, n_resamples=resamples, method='percentile', rng=seed)
-    return float(res.confidence_interval.low), float(res.confidence_interval.high)
+    shared = sorted(fa.keys() & fb.keys())
+    return paired_ratio_interval([fa[r] for r in shared], [fb[r] for r in shared])
 
 
 def compare(first: dict[str, MethodRuns], second: dict[str, MethodRuns], names: Sequence[str]) -> list[str]:

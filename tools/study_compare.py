@@ -6,7 +6,8 @@ is the baseline; every other is paired with it on the seeds both have, so that e
 robot, camera and marker errors and initial guess are shared (the selections are not: a run
 parts from its pair at the first attempt that differs). Per figure (final position and
 orientation error, the information limit, and the realised error over that limit): each study's
-mean, median and range, the ratio of the means to the baseline's, in how many seeds the study was
+mean, median and range, the ratio of the means to the baseline's with its 95% interval (a
+percentile bootstrap over the common seeds, resampled in pairs), in how many seeds the study was
 lower, and the two-sided Wilcoxon signed-rank p of the paired differences (scipy).
 
 Usage (from the repository root)::
@@ -25,6 +26,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 from scipy.stats import wilcoxon
 
+from calibration_bringup.experiment_figures import paired_ratio_interval
 from tools.seed_study import read_records, read_summary
 
 __all__ = ['Study', 'load_study', 'FIGURES', 'compare', 'main']
@@ -112,20 +114,24 @@ def compare(studies: Sequence[Study]) -> str:
         raise ValueError(f'compare needs a baseline and at least one other study, got {len(studies)}')
     base = studies[0]
     lines = [f'Baseline: {base.name} ({len(base.records)} seeds). Each figure: mean / median / range over '
-             'the seeds both studies have; x: ratio of the means; lower: seeds where the study is lower '
-             'than the baseline; p: two-sided Wilcoxon signed-rank test of the paired differences.', '']
+             'the seeds both studies have; x: ratio of the means, with its 95% interval (percentile bootstrap '
+             'over the seeds, resampled in pairs); lower: seeds where the study is lower than the baseline; '
+             'p: two-sided Wilcoxon signed-rank test of the paired differences.', '']
     for other in studies[1:]:
         seeds = sorted(set(base.records) & set(other.records))
         if not seeds:
             raise ValueError(f'study {other.name!r} shares no seed with the baseline {base.name!r}')
         lines += [f'**{other.name}** against {base.name}: {len(seeds)} common seeds '
                   f'({seeds[0]}-{seeds[-1]}' + (')' if len(seeds) == seeds[-1] - seeds[0] + 1 else ', not all)'),
-                  '', f'| figure | {base.name} | {other.name} | x | lower | p |', '|---|---|---|---|---|---|']
+                  '', f'| figure | {base.name} | {other.name} | x | 95% interval | lower | p |',
+                  '|---|---|---|---|---|---|---|']
         for label, fmt, get in FIGURES:
             a = np.array([get(base.records[s]) for s in seeds])
             b = np.array([get(other.records[s]) for s in seeds])
+            low, high = paired_ratio_interval(a, b)
+            interval = '-' if np.isnan(low) else f'{low:.2f}-{high:.2f}'
             lines.append(f'| {label} | {_spread(a, fmt)} | {_spread(b, fmt)} | {b.mean() / a.mean():.3f} | '
-                         f'{int(np.sum(b < a))} of {len(seeds)} | {_wilcoxon_p(b, a):.2g} |')
+                         f'{interval} | {int(np.sum(b < a))} of {len(seeds)} | {_wilcoxon_p(b, a):.2g} |')
         lines.append('')
     return '\n'.join(lines)
 

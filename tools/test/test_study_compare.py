@@ -38,14 +38,25 @@ def test_a_study_better_on_every_seed_is_lower_on_all_with_a_small_p() -> None:
     better = Study('better', {s: _record(0.8 * v) for s, v in base.items()})
     text = compare([Study('base', {s: _record(v) for s, v in base.items()}), better])
     row = _row(text, 'final position error [mm]')
-    assert row[3] == '0.800' and row[4] == '20 of 20' and float(row[5]) < 1e-4, row
+    assert row[3] == '0.800' and row[4] == '0.80-0.80' and row[5] == '20 of 20' and float(row[6]) < 1e-4, row
     assert '20 common seeds (1-20)' in text
+
+
+def test_the_ratio_interval_pairs_the_seeds() -> None:
+    # Seeds differ 4x, the two studies of a seed by a few percent: paired, the interval is narrow.
+    rng = np.random.default_rng(6)
+    base = {s: 0.2 + 0.6 * rng.random() for s in range(1, 21)}
+    other = {s: 1.2 * v * rng.lognormal(0.0, 0.05) for s, v in base.items()}
+    row = _row(compare([Study('a', {s: _record(v) for s, v in base.items()}),
+                        Study('b', {s: _record(v) for s, v in other.items()})]), 'final position error [mm]')
+    low, high = map(float, row[4].split('-'))
+    assert low < float(row[3]) < high and 1.1 < low and high < 1.3, row
 
 
 def test_a_study_equal_to_its_baseline_has_ratio_1_and_p_1() -> None:
     recs = {s: _record(0.1 * s) for s in range(1, 6)}
     row = _row(compare([Study('a', recs), Study('b', dict(recs))]), 'final / limit, position')
-    assert row[3] == '1.000' and row[4] == '0 of 5' and row[5] == '1', row
+    assert row[3] == '1.000' and row[4] == '1.00-1.00' and row[5] == '0 of 5' and row[6] == '1', row
 
 
 def test_only_the_common_seeds_are_paired_and_a_gap_is_said(tmp_path: Path) -> None:

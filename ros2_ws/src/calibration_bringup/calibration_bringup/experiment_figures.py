@@ -29,11 +29,11 @@ from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from .run_check import observations_used
 
-__all__ = ['MethodRuns', 'load_metrics', 'paired_difference', 'Claim', 'paper_claims', 'claims_markdown',
+__all__ = ['MethodRuns', 'load_metrics', 'paired_difference', 'paired_ratio_interval', 'Claim', 'paper_claims', 'claims_markdown',
            'summary_markdown', 'plot_all', 'render', 'main']
 
 #: Plot order and style: the paper's four methods, then the CN variants.
@@ -181,6 +181,37 @@ def paired_difference(first: MethodRuns, second: MethodRuns, column: str) -> tup
         return 0, float('nan'), 0, float('nan')
     p = float(wilcoxon(d).pvalue) if np.count_nonzero(d) >= 2 else float('nan')
     return int(d.size), float(np.median(d)), int(np.sum(d < 0)), p
+
+
+def paired_ratio_interval(a: ArrayLike, b: ArrayLike, confidence: float = 0.95, resamples: int = 10_000,
+                          seed: int = 0) -> tuple[float, float]:
+    """Percentile bootstrap interval of ``mean(b) / mean(a)`` over pairs ``(a_i, b_i)`` resampled
+    together (a repetition's, or a seed's, two runs meet the same robot and initial guess).
+
+    Parameters
+    ----------
+    a, b : array_like, shape (N,)
+        Paired values; pairs with a non-finite value are dropped.
+
+    Returns
+    -------
+    low, high : float
+        NaN with fewer than two pairs; both the ratio when every pair has the same one (scipy's
+        bootstrap refuses a degenerate sample).
+    """
+    from scipy.stats import bootstrap
+
+    pairs = np.column_stack([np.asarray(a, dtype=float), np.asarray(b, dtype=float)])
+    pairs = pairs[np.all(np.isfinite(pairs), axis=1)]
+    if len(pairs) < 2:
+        return float('nan'), float('nan')
+    with np.errstate(divide='ignore', invalid='ignore'):
+        if np.ptp(pairs[:, 1] / pairs[:, 0]) == 0 or np.ptp(pairs[:, 0]) == np.ptp(pairs[:, 1]) == 0:
+            r = float(pairs[:, 1].mean() / pairs[:, 0].mean())
+            return r, r
+    res = bootstrap((pairs[:, 0], pairs[:, 1]), lambda x, y, axis=-1: y.mean(axis) / x.mean(axis), paired=True,
+                    confidence_level=confidence, n_resamples=resamples, method='percentile', rng=seed)
+    return float(res.confidence_interval.low), float(res.confidence_interval.high)
 
 
 #: Significance level of the paired tests behind the claims.

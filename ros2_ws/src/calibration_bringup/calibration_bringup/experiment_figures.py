@@ -196,21 +196,24 @@ def paired_ratio_interval(a: ArrayLike, b: ArrayLike, confidence: float = 0.95, 
     Returns
     -------
     low, high : float
-        NaN with fewer than two pairs; both the ratio when every pair has the same one (scipy's
-        bootstrap refuses a degenerate sample).
+        NaN with fewer than two pairs or ``mean(a) = 0``; both the ratio when every pair has the
+        same one (scipy's bootstrap refuses a degenerate sample); ``high`` may be inf when some
+        ``a`` are 0 (a resample of only those has no ratio).
     """
     from scipy.stats import bootstrap
 
     pairs = np.column_stack([np.asarray(a, dtype=float), np.asarray(b, dtype=float)])
     pairs = pairs[np.all(np.isfinite(pairs), axis=1)]
-    if len(pairs) < 2:
+    if len(pairs) < 2 or pairs[:, 0].mean() == 0:
         return float('nan'), float('nan')
     with np.errstate(divide='ignore', invalid='ignore'):
-        if np.ptp(pairs[:, 1] / pairs[:, 0]) == 0 or np.ptp(pairs[:, 0]) == np.ptp(pairs[:, 1]) == 0:
+        ratios = pairs[:, 1] / pairs[:, 0]
+        if np.all(np.isfinite(ratios)) and np.ptp(ratios) == 0:
             r = float(pairs[:, 1].mean() / pairs[:, 0].mean())
             return r, r
-    res = bootstrap((pairs[:, 0], pairs[:, 1]), lambda x, y, axis=-1: y.mean(axis) / x.mean(axis), paired=True,
-                    confidence_level=confidence, n_resamples=resamples, method='percentile', rng=seed)
+        res = bootstrap((pairs[:, 0], pairs[:, 1]), lambda x, y, axis=-1: y.mean(axis) / x.mean(axis),
+                        paired=True, confidence_level=confidence, n_resamples=resamples, method='percentile',
+                        rng=seed)
     return float(res.confidence_interval.low), float(res.confidence_interval.high)
 
 

@@ -171,6 +171,24 @@ def _method(name: str, position: np.ndarray, orientation: np.ndarray, movement: 
     return figs.MethodRuns(name, np.arange(n), cols)
 
 
+def test_the_ratio_interval_is_paired_and_says_when_there_is_none() -> None:
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')                      # no division warning on any input below
+        assert figs.paired_ratio_interval([1.0, 2.0, 3.0], [2.0, 4.0, 6.0]) == (2.0, 2.0)   # one ratio
+        assert np.isnan(figs.paired_ratio_interval([1.0], [2.0])[0])                        # one pair
+        assert np.isnan(figs.paired_ratio_interval([0.0, 0.0, 0.0], [1.0, 2.0, 0.0])[0])    # mean(a) = 0
+        assert np.isnan(figs.paired_ratio_interval([1.0, np.nan, 3.0], [2.0, 2.0, np.nan])[0])  # one finite pair
+        low, high = figs.paired_ratio_interval([1.0, 2.0, 3.0, 0.0], [1.0, 2.0, 3.0, 1.0])
+    assert 1.0 <= low < high
+    # Seeds 10x apart, pairs 1.5x apart within a few percent: the interval is the pairs', not the seeds'.
+    rng = np.random.default_rng(1)
+    a = rng.uniform(0.1, 1.0, 30)
+    low, high = figs.paired_ratio_interval(a, 1.5 * a * rng.lognormal(0.0, 0.02, 30))
+    assert 1.45 < low < 1.5 < high < 1.55
+
+
 def test_the_papers_claims_are_judged_from_the_runs() -> None:
     rng = np.random.default_rng(3)
     r_pos, r_rot = rng.uniform(10, 20, 20), rng.uniform(3, 5, 20)

@@ -21,7 +21,8 @@ from typing import Sequence
 
 import numpy as np
 
-from calibration_bringup.experiment_figures import MethodRuns, load_metrics, paired_difference, paired_ratio_interval
+from calibration_bringup.experiment_figures import (MethodRuns, load_metrics, paired_difference,
+                                                   paired_ratio_interval)
 
 #: (CSV column, label, digits) compared.
 FIGURES = (('position_mm', 'position [mm]', 3), ('orientation_deg', 'orientation [deg]', 3),

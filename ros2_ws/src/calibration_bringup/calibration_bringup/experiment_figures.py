@@ -33,8 +33,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from .run_check import observations_used
 
-__all__ = ['MethodRuns', 'load_metrics', 'paired_difference', 'paired_ratio_interval', 'Claim', 'paper_claims', 'claims_markdown',
-           'summary_markdown', 'plot_all', 'render', 'main']
+__all__ = ['MethodRuns', 'load_metrics', 'paired_difference', 'paired_ratio_interval', 'Claim', 'paper_claims',
+           'claims_markdown', 'summary_markdown', 'plot_all', 'render', 'main']
 
 #: Plot order and style: the paper's four methods, then the CN variants.
 ORDER = ('R', 'AL', 'UCSAL', 'CCSAL', 'AL-CN', 'UCSAL-CN', 'CCSAL-CN')

@@ -30,7 +30,8 @@ from pathlib import Path
 from body_schema.noise import CAUTION_ALPHA, InnovationCheck
 from calibration_interfaces.outcome import Outcome
 
-__all__ = ['CheckSettings', 'observations_used', 'check_rows', 'dh_difference', 'check_run', 'noise_law_cautions', 'main']
+__all__ = ['CheckSettings', 'observations_used', 'check_rows', 'dh_difference', 'check_run', 'noise_law_cautions',
+           'main']
 
 #: The report's line with the largest |offline - online| difference of the final DH tables
 #: (``dh_estimator.evaluate.summary_text``).

@@ -21,8 +21,8 @@ from typing import Sequence
 
 import numpy as np
 
-from calibration_bringup.experiment_figures import (MethodRuns, load_metrics, paired_difference,
-                                                   paired_ratio_interval)
+from calibration_bringup.experiment_figures import (MethodRuns, interval_text, load_metrics, paired_difference,
+                                                   paired_finals, paired_ratio_interval)
 
 #: (CSV column, label, digits) compared.
 FIGURES = (('position_mm', 'position [mm]', 3), ('orientation_deg', 'orientation [deg]', 3),
@@ -32,10 +32,7 @@ FIGURES = (('position_mm', 'position [mm]', 3), ('orientation_deg', 'orientation
 def ratio_interval(first: MethodRuns, second: MethodRuns, column: str) -> tuple[float, float]:
     """95% interval of ``mean(second) / mean(first)`` of the final ``column`` over the shared
     repetitions (:func:`~calibration_bringup.experiment_figures.paired_ratio_interval`)."""
-    fa = dict(zip(first.repetitions.tolist(), first.final(column)))
-    fb = dict(zip(second.repetitions.tolist(), second.final(column)))
-    shared = sorted(fa.keys() & fb.keys())
-    return paired_ratio_interval([fa[r] for r in shared], [fb[r] for r in shared])
+    return paired_ratio_interval(*paired_finals(first, second, column))
 
 
 def compare(first: dict[str, MethodRuns], second: dict[str, MethodRuns], names: Sequence[str]) -> list[str]:
@@ -48,8 +45,7 @@ def compare(first: dict[str, MethodRuns], second: dict[str, MethodRuns], names: 
             fa, fb = first[method].final(column), second[method].final(column)
             # Second minus first: negative favours the second.
             n, median, second_lower, p = paired_difference(second[method], first[method], column)
-            low, high = ratio_interval(first[method], second[method], column)
-            interval = '-' if np.isnan(low) else f'{low:.2f}-{high:.2f}'
+            interval = interval_text(*ratio_interval(first[method], second[method], column))
             lines.append(f'| {method} | {label} | {np.mean(fa):.{digits}f} ({np.median(fa):.{digits}f}) | '
                          f'{np.mean(fb):.{digits}f} ({np.median(fb):.{digits}f}) | {np.mean(fb) / np.mean(fa):.2f} | '
                          f'{interval} | {n} | {median:+.{digits}f} | {second_lower} | {p:.2g} |')

@@ -26,7 +26,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 from scipy.stats import wilcoxon
 
-from calibration_bringup.experiment_figures import paired_ratio_interval
+from calibration_bringup.experiment_figures import interval_text, paired_ratio_interval
 from tools.seed_study import read_records, read_summary
 
 __all__ = ['Study', 'load_study', 'FIGURES', 'compare', 'main']
@@ -128,8 +128,7 @@ def compare(studies: Sequence[Study]) -> str:
         for label, fmt, get in FIGURES:
             a = np.array([get(base.records[s]) for s in seeds])
             b = np.array([get(other.records[s]) for s in seeds])
-            low, high = paired_ratio_interval(a, b)
-            interval = '-' if np.isnan(low) else f'{low:.2f}-{high:.2f}'
+            interval = interval_text(*paired_ratio_interval(a, b))
             lines.append(f'| {label} | {_spread(a, fmt)} | {_spread(b, fmt)} | {b.mean() / a.mean():.3f} | '
                          f'{interval} | {int(np.sum(b < a))} of {len(seeds)} | {_wilcoxon_p(b, a):.2g} |')
         lines.append('')

@@ -90,7 +90,7 @@ from scipy.stats import qmc
 
 from . import kinematics
 from .extrinsics import Extrinsics
-from .noise import ConstantNoise, NoiseModel, stereo_covariance, view_geometry
+from .noise import ConstantNoise, MarkerView, NoiseModel, stereo_covariance, view_geometry
 from .occlusion import OcclusionModel, VisibilityPrior
 from .robot import MarkerPlacement
 from .sampling import as_rng
@@ -236,11 +236,6 @@ def box_pose_weight(base: ArrayLike, dh: ArrayLike, box_configs: ArrayLike,
     jac = kinematics.pose_jacobian_dh(base, dh, q)               # (M, 6, n)
     w = np.array([s_pos ** -2] * 3 + [s_rot ** -2] * 3)
     return np.einsum('mki,k,mkj->ij', jac, w, jac) / q.shape[0]
-
-
-#: A camera's view of the hand's markers: their poses (N, M, 4, 4) and :func:`~body_schema.noise.view_geometry`
-#: ``r``, ``phi`` (N, M), shared by the noise law and the visibility prior of one cost evaluation.
-_View = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]
 
 
 @dataclass
@@ -410,7 +405,7 @@ class AcquisitionCost:
             eta = np.ones(hand.shape[0]) if prior is None else prior
         return gain, eta, hand[:, 0, 3]
 
-    def _views(self, hand: NDArray[np.float64]) -> list[_View | None]:
+    def _views(self, hand: NDArray[np.float64]) -> list[MarkerView | None]:
         """Each camera's view of the markers of hands (N, 4, 4), computed once for the noise law
         and the visibility prior; None for each without markers (those raise where they are used)."""
         if not self.markers:
@@ -418,7 +413,7 @@ class AcquisitionCost:
         poses = hand[:, None] @ self._marker_frames                             # (N, M, 4, 4)
         return [(poses, *view_geometry(cam, poses)) for cam in self._cameras]
 
-    def _covariance(self, camera: NDArray[np.float64], hand: NDArray[np.float64], view: _View | None
+    def _covariance(self, camera: NDArray[np.float64], hand: NDArray[np.float64], view: MarkerView | None
                     ) -> NDArray[np.float64]:
         """The noise law's ``R`` (N, 6, 6) of hands (N, 4, 4) seen by ``camera`` (4, 4)."""
         if len(hand) == 1:
@@ -429,7 +424,7 @@ class AcquisitionCost:
 
     def _pair_outcomes(self, hand: NDArray[np.float64], hph: NDArray[np.float64],
                        thetas: ArrayLike | None = None, learned: bool = True,
-                       views: Sequence[_View | None] | None = None,
+                       views: Sequence[MarkerView | None] | None = None,
                        ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         """Probabilities (N,) that both cameras, only the first, only the second see the hand: from
         the geometric visibility, or (with :attr:`eye_occlusion` and ``learned``; needs ``thetas``
@@ -450,7 +445,7 @@ class AcquisitionCost:
         both = c * np.minimum(p1, p2) + (1.0 - c) * p1 * p2
         return both, p1 - both, p2 - both
 
-    def _pair_covariances(self, hand: NDArray[np.float64], views: Sequence[_View | None] | None = None
+    def _pair_covariances(self, hand: NDArray[np.float64], views: Sequence[MarkerView | None] | None = None
                           ) -> list[NDArray[np.float64]]:
         """``R`` (N, 6, 6) of the outcomes both, first only, second only (``views``: see :meth:`_pair_outcomes`)."""
         views = self._views(hand) if views is None else views
@@ -458,7 +453,7 @@ class AcquisitionCost:
         return [stereo_covariance(np.stack([r1, r2], axis=-3), self.noise), r1, r2]
 
     def _stereo_terms(self, hand: NDArray[np.float64], hp: NDArray[np.float64], hph: NDArray[np.float64],
-                      thetas: ArrayLike, views: Sequence[_View | None]
+                      thetas: ArrayLike, views: Sequence[MarkerView | None]
                       ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
         """Expected gain given success and the probability of success (None without a visibility
         prior or per-camera occlusion models)."""
@@ -488,7 +483,7 @@ class AcquisitionCost:
     def _visibility(self, hand: NDArray[np.float64], hph: NDArray[np.float64],
                     camera: NDArray[np.float64] | None = None,
                     stds: tuple[NDArray[np.float64], NDArray[np.float64]] | None = None,
-                    view: _View | None = None) -> NDArray[np.float64]:
+                    view: MarkerView | None = None) -> NDArray[np.float64]:
         """Geometric detection probability (N,) of hands (N, 4, 4) with predicted pose covariances
         (N, 6, 6) by ``camera`` (4, 4); by either camera of a pair when it is None. ``stds``: the
         covariances' :meth:`_pose_stds`, ``view``: that camera's :meth:`_views`, when already computed."""

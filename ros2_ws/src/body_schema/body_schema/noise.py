@@ -38,8 +38,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from .robot import ArmModel, MarkerPlacement
 
-__all__ = ['view_geometry', 'NoiseModel', 'PoseDependentNoise', 'ConstantNoise', 'NOISE_MODELS', 'noise_model',
-           'sample_pose', 'line_of_sight_covariance', 'stereo_covariance', 'InnovationCheck', 'innovation_check', 'CAUTION_ALPHA']
+__all__ = ['view_geometry', 'MarkerView', 'NoiseModel', 'PoseDependentNoise', 'ConstantNoise', 'NOISE_MODELS',
+           'noise_model', 'sample_pose', 'line_of_sight_covariance', 'stereo_covariance', 'InnovationCheck',
+           'innovation_check', 'CAUTION_ALPHA']
 
 #: phi beyond which a marker is seen edge-on or from behind and cannot be detected [deg].
 MAX_VIEW_ANGLE_DEG = 90.0
@@ -75,6 +76,12 @@ def view_geometry(camera_pose: ArrayLike, marker_pose: ArrayLike) -> tuple[NDArr
     normal = m[..., :3, 2]
     cos_phi = np.einsum('...i,...i->...', normal, to_cam) / np.maximum(r, 1e-12)
     return r, np.degrees(np.arccos(np.minimum(np.maximum(cos_phi, -1.0), 1.0)))
+
+
+#: A camera's view of a hand's markers: their poses (..., M, 4, 4) and their :func:`view_geometry`
+#: ``r``, ``phi`` (..., M). Computed once per cost evaluation, shared by the noise law and the
+#: visibility prior.
+MarkerView = tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]
 
 
 def _assemble(var_pos: ArrayLike, var_rot: ArrayLike) -> NDArray[np.float64]:
@@ -134,7 +141,7 @@ class NoiseModel(Protocol):
 
     def hand_covariance(self, camera_pose: ArrayLike, hand_pose: ArrayLike,
                         markers: Sequence[MarkerPlacement],
-                        view: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]] | None = None,
+                        view: MarkerView | None = None,
                         ) -> NDArray[np.float64]:
         """Predicted covariance of a hand observation, shape (..., 6, 6)."""
 
@@ -166,7 +173,7 @@ class _Base:
 
     def hand_covariance(self, camera_pose: ArrayLike, hand_pose: ArrayLike,
                         markers: Sequence[MarkerPlacement],
-                        view: tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]] | None = None,
+                        view: MarkerView | None = None,
                         ) -> NDArray[np.float64]:
         """Predicted covariance for a hand pose: the best-placed marker facing the camera.
 

@@ -737,7 +737,12 @@ def run_cautions(results: Sequence[RunResult]) -> list[str]:
     it, but its final error is the initial guess's and the reader should know why."""
     return [f'{r.spec.label}: no observation reached the estimate in its {len(r.rows) - 1} iterations; '
             "its final error is the initial guess's"
-            for r in results if r.rows is not None and not observations_used(row['outcome'] for row in r.rows[1:])]
+            for r in results if r.rows is not None and _no_observation_used(r.rows)]
+
+
+def _no_observation_used(rows: Sequence[Mapping[str, Any]]) -> bool:
+    """Whether none of a run's iteration rows (row 0 is the initial guess) moved the estimate."""
+    return not observations_used(row['outcome'] for row in rows[1:])
 
 
 def _store(result: RunResult, root: Path, run_hash: str) -> None:
@@ -795,7 +800,7 @@ def _run_all(todo: list[RunSpec], config: ExperimentConfig, record: bool, hashes
                     last = result.rows[-1]
                     note = (f"done in {result.wall_s:.0f} s on {result.host}, final {last['position_mm']:.1f} mm / "
                             f"{last['orientation_deg']:.2f} deg, movement {last['movement_deg']:.0f} deg")
-                    if not observations_used(r['outcome'] for r in result.rows[1:]):
+                    if _no_observation_used(result.rows):
                         note += ', NO OBSERVATION USED (the final estimate is the initial guess)'
                 outcome.results.append(replace(result, log=None, mcap=None))
                 bar.update(1)

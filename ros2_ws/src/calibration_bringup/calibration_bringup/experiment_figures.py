@@ -33,8 +33,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from .run_check import observations_used
 
-__all__ = ['MethodRuns', 'load_metrics', 'paired_difference', 'paired_ratio_interval', 'Claim', 'paper_claims',
-           'claims_markdown', 'summary_markdown', 'plot_all', 'render', 'main']
+__all__ = ['MethodRuns', 'load_metrics', 'paired_finals', 'paired_difference', 'paired_ratio_interval',
+           'interval_text', 'Claim', 'paper_claims', 'claims_markdown', 'summary_markdown', 'plot_all', 'render', 'main']
 
 #: Plot order and style: the paper's four methods, then the CN variants.
 ORDER = ('R', 'AL', 'UCSAL', 'CCSAL', 'AL-CN', 'UCSAL-CN', 'CCSAL-CN')
@@ -155,6 +155,15 @@ def _relative_to_al(data: dict[str, MethodRuns], name: str, column: str) -> str:
     return f'{np.nanmean(data[name].final(column)) / base:.2f}' if base > 0 else '-'
 
 
+def paired_finals(first: MethodRuns, second: MethodRuns, column: str
+                  ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Final ``column`` of two methods over the repetitions both ran, in repetition order: (P,) each."""
+    fa = dict(zip(first.repetitions.tolist(), first.final(column)))
+    fb = dict(zip(second.repetitions.tolist(), second.final(column)))
+    shared = sorted(fa.keys() & fb.keys())
+    return np.array([fa[r] for r in shared], dtype=float), np.array([fb[r] for r in shared], dtype=float)
+
+
 def paired_difference(first: MethodRuns, second: MethodRuns, column: str) -> tuple[int, float, int, float]:
     """Paired final values of two methods over their shared repetitions.
 
@@ -170,11 +179,7 @@ def paired_difference(first: MethodRuns, second: MethodRuns, column: str) -> tup
     """
     from scipy.stats import wilcoxon
 
-    fa = dict(zip(first.repetitions.tolist(), first.final(column)))
-    fb = dict(zip(second.repetitions.tolist(), second.final(column)))
-    shared = sorted(fa.keys() & fb.keys())
-    a = np.array([fa[r] for r in shared], dtype=float)
-    b = np.array([fb[r] for r in shared], dtype=float)
+    a, b = paired_finals(first, second, column)
     ok = np.isfinite(a) & np.isfinite(b)
     d = a[ok] - b[ok]
     if d.size == 0:
@@ -215,6 +220,11 @@ def paired_ratio_interval(a: ArrayLike, b: ArrayLike, confidence: float = 0.95, 
                         paired=True, confidence_level=confidence, n_resamples=resamples, method='percentile',
                         rng=seed)
     return float(res.confidence_interval.low), float(res.confidence_interval.high)
+
+
+def interval_text(low: float, high: float) -> str:
+    """A ratio's interval as the comparison tables print it: ``'0.94-1.16'``, ``'-'`` when there is none."""
+    return '-' if np.isnan(low) else f'{low:.2f}-{high:.2f}'
 
 
 #: Significance level of the paired tests behind the claims.

@@ -4,8 +4,9 @@
 one pose Jacobian w.r.t. the 28 parameters, one EKF update (plain and iterated), one AL
 selection with DIRECT-L at 2000 evaluations and the cost of one evaluation inside it, and one
 evaluation of the iCub's default stereo cost (both eyes, the whole-marker visibility prior,
-v-optimality, the occlusion-discounted gain) at one configuration, as the selector's local search
-makes about 90 of them per selection.
+v-optimality, the occlusion-discounted gain; built by the selector's planner with its default
+settings) at one configuration, as the selector's local search makes about 90 of them per
+selection.
 """
 from __future__ import annotations
 
@@ -16,10 +17,11 @@ from typing import Callable
 
 import numpy as np
 
+from active_selector.planner import Planner
 from body_schema import ekf, load_robot, sampling
 from body_schema.acquisition import AcquisitionCost, JointSelector, SelectorConfig
 from body_schema.noise import PoseDependentNoise
-from body_schema.occlusion import OcclusionModel, VisibilityPrior
+from body_schema.occlusion import OcclusionModel
 
 
 def _median_time(fn: Callable[[], object], repeat: int, warmup: int = 3) -> float:
@@ -59,12 +61,13 @@ def measure(scale: float = 1.0) -> list[tuple[str, float, str, str]]:
     cost = AcquisitionCost(arm.base, dh, P, PoseDependentNoise(), arm.camera_pose('left'),
                            arm.markers, occlusion=occ, penalty_a=0.01, penalty_b=10.0)
     selector = JointSelector(arm.calibration_box, SelectorConfig(strategy='al', optimizer='direct', max_evals=2000))
-    eyes = np.stack([arm.camera_pose('left'), arm.camera_pose('right')])
-    prior = VisibilityPrior(arm.camera, margin=0.02, marker_side=arm.marker_side_length, margin_marker_widths=0.5)
-    stereo = AcquisitionCost(arm.base, dh, P, PoseDependentNoise.for_robot(arm), eyes, arm.markers, occlusion=occ,
-                             visibility=prior, occlusion_mode='gain', criterion='v_optimal',
-                             box_configs=sampling.uniform_configs(arm.calibration_box, 200, rng),
-                             penalty_a=0.01, penalty_b=10.0)
+    # The selector's own cost for a stereo pair, built by its planner with the default settings
+    # after the same 50-attempt history.
+    planner = Planner(arm, PoseDependentNoise.for_robot(arm), eyes=('left', 'right'))
+    planner.start = q
+    for t, seen in zip(*occ.attempts):
+        planner.record(t, t, 'accepted' if seen else 'failed', bool(seen), 0.0)
+    stereo = planner.cost(dh, P, np.stack([arm.camera_pose('left'), arm.camera_pose('right')]))
 
     def _n(repeat: int) -> int:
         return max(1, int(repeat * scale))

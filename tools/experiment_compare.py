@@ -1,13 +1,13 @@
-"""Compare two experiments method by method on their shared repetitions (paired).
+"""Compare two experiments method by method on their shared seeds (paired).
 
-Two ``make experiment`` output directories with the same seed base meet the same real robots and
-initial guesses in each repetition, so their final errors pair up. For every method both ran, this
-prints each experiment's mean and median final position and orientation error and discarded
-attempts, the ratio of the means (second over first) with its 95% paired bootstrap interval over
-the shared repetitions (:func:`ratio_interval`), and the paired test of
+Two ``make experiment`` output directories meet the same real robots and initial guesses in the
+runs with the same seed, so their final errors pair up by seed (by repetition for CSVs without a
+``seed`` column); runs of another seed base share none, and are refused. For every method both
+ran, this prints each experiment's mean and median final position and orientation error and
+discarded attempts, the ratio of the means (second over first) with its 95% paired bootstrap
+interval over the shared seeds (:func:`ratio_interval`), and the paired test of
 :func:`calibration_bringup.experiment_figures.paired_difference` (median difference, how often the
 second is lower, two-sided Wilcoxon p).
-
 Usage (from the repository root)::
 
     python -m tools.experiment_compare results/one-eye results/experiment-ours --names "one eye" "both eyes"
@@ -31,16 +31,29 @@ FIGURES = (('position_mm', 'position [mm]', 3), ('orientation_deg', 'orientation
 
 def ratio_interval(first: MethodRuns, second: MethodRuns, column: str) -> tuple[float, float]:
     """95% interval of ``mean(second) / mean(first)`` of the final ``column`` over the shared
-    repetitions (:func:`~calibration_bringup.experiment_figures.paired_ratio_interval`)."""
+    seeds (:func:`~calibration_bringup.experiment_figures.paired_ratio_interval`)."""
     return paired_ratio_interval(*paired_finals(first, second, column))
 
 
 def compare(first: dict[str, MethodRuns], second: dict[str, MethodRuns], names: Sequence[str]) -> list[str]:
-    """Markdown table rows comparing the methods both experiments ran."""
+    """Markdown table rows comparing the methods both experiments ran.
+
+    Raises
+    ------
+    ValueError
+        If no method is in both, or a method both ran shares no seed (another seed base): nothing
+        to pair, which an empty table would hide.
+    """
     a, b = names
+    methods = [m for m in first if m in second]
+    if not methods:
+        raise ValueError(f'no method in both experiments: {list(first)} and {list(second)}')
+    for method in methods:
+        if not paired_finals(first[method], second[method], 'position_mm')[0].size:
+            raise ValueError(f'{method}: no seed in both experiments (another --seed-base?)')
     lines = [f'| method | figure | {a}: mean (median) | {b}: mean (median) | {b} / {a} | 95% interval | pairs | '
              f'median difference ({b} - {a}) | {b} lower | p |', '|---|---|---|---|---|---|---|---|---|---|']
-    for method in [m for m in first if m in second]:
+    for method in methods:
         for column, label, digits in FIGURES:
             fa, fb = first[method].final(column), second[method].final(column)
             # Second minus first: negative favours the second.
@@ -60,11 +73,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = ap.parse_args(argv)
     try:
         first, second = (load_metrics(d / 'metrics.csv') for d in (args.first, args.second))
+        lines = compare(first, second, args.names or [args.first.name, args.second.name])
     except (OSError, ValueError) as exc:
         print(f'experiment_compare: {exc}', file=sys.stderr)
         return 2
-    names = args.names or [args.first.name, args.second.name]
-    print('\n'.join(compare(first, second, names)))
+    print('\n'.join(lines))
     return 0
 
 

@@ -237,6 +237,27 @@ def test_experiment_compare_bounds_the_ratio_of_means_in_pairs() -> None:
     assert np.isnan(ratio_interval(first, runs(base[:1], reps[:1]), 'position_mm')[0])
 
 
+
+def test_experiment_compare_refuses_two_experiments_with_nothing_to_pair() -> None:
+    from calibration_bringup.experiment_figures import MethodRuns
+    from tools.experiment_compare import compare
+
+    def runs(method: str, reps: list[int]) -> dict[str, MethodRuns]:
+        cols = {c: np.ones((len(reps), 2)) for c in ('position_mm', 'orientation_deg', 'discarded', 'movement_deg')}
+        return {method: MethodRuns(method, np.array(reps), cols)}
+
+    with pytest.raises(ValueError, match=r"no method in both experiments: \['AL'\] and \['R'\]"):
+        compare(runs('AL', [0, 1]), runs('R', [0, 1]), ['a', 'b'])
+    with pytest.raises(ValueError, match='AL: no seed in both experiments'):
+        compare(runs('AL', [0, 1]), runs('AL', [1000, 1001]), ['a', 'b'])
+    assert len(compare(runs('AL', [0, 1]), runs('AL', [1, 2]), ['a', 'b'])) == 2 + 4    # header + 4 figures
+    # Repetition 0 of seed base 1000 is another robot than repetition 0 of seed base 0: pairs by seed.
+    base0, base1000 = runs('AL', [0, 1]), runs('AL', [0, 1])
+    base0['AL'].seeds, base1000['AL'].seeds = np.array([0, 1]), np.array([1000, 1001])
+    with pytest.raises(ValueError, match='AL: no seed in both experiments'):
+        compare(base0, base1000, ['a', 'b'])
+
+
 @pytest.mark.slow
 def test_experiment_compare_pairs_the_methods_both_ran(recorded_experiment: Path, tmp_path: Path,
                                                        capsys: pytest.CaptureFixture[str]) -> None:

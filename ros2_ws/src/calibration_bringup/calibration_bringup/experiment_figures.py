@@ -63,11 +63,13 @@ def _color(method: str) -> str:
 class MethodRuns:
     """All runs of one method: each numeric column as an array (runs, iterations + 1), NaN-padded,
     plus ``rejected``: the running count of observations the estimator's gate refused, and (from
-    :func:`load_metrics`) ``used``: the running count of those that reached the estimate."""
+    :func:`load_metrics`) ``used``: the running count of those that reached the estimate.
+    ``seeds``: each run's repetition seed (``seed_base + repetition``), when the CSV has them."""
 
     method: str
     repetitions: NDArray[np.int64]
     columns: dict[str, NDArray[np.float64]]
+    seeds: NDArray[np.int64] | None = None
 
     @property
     def n_runs(self) -> int:
@@ -131,7 +133,9 @@ def load_metrics(path: Path | Sequence[Path]) -> dict[str, MethodRuns]:
             # Observations refused by the estimator's gate, and used, so far (NaN stays NaN past a run's end).
             cols['rejected'][i] = np.cumsum(cols['rejected'][i])
             cols['used'][i] = np.cumsum(cols['used'][i])
-        out[m] = MethodRuns(m, np.array(reps), cols)
+        seeds = [runs[(m, r)][min(runs[(m, r)])].get('seed', '') for r in reps]
+        out[m] = MethodRuns(m, np.array(reps), cols,
+                            np.array(seeds, dtype=np.int64) if all(str(x).strip() for x in seeds) else None)
     return out
 
 
@@ -157,9 +161,11 @@ def _relative_to_al(data: dict[str, MethodRuns], name: str, column: str) -> str:
 
 def paired_finals(first: MethodRuns, second: MethodRuns, column: str
                   ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Final ``column`` of two methods over the repetitions both ran, in repetition order: (P,) each."""
-    fa = dict(zip(first.repetitions.tolist(), first.final(column)))
-    fb = dict(zip(second.repetitions.tolist(), second.final(column)))
+    """Final ``column`` of two methods over the runs both made on the same seeds (the same real
+    robot and initial guess; the repetitions where either lacks seeds), in seed order: (P,) each."""
+    use_seeds = first.seeds is not None and second.seeds is not None
+    fa = dict(zip((first.seeds if use_seeds else first.repetitions).tolist(), first.final(column)))
+    fb = dict(zip((second.seeds if use_seeds else second.repetitions).tolist(), second.final(column)))
     shared = sorted(fa.keys() & fb.keys())
     return np.array([fa[r] for r in shared], dtype=float), np.array([fb[r] for r in shared], dtype=float)
 

@@ -8,6 +8,7 @@ discarded attempts, the ratio of the means (second over first) with its 95% pair
 interval over the shared seeds (:func:`ratio_interval`), and the paired test of
 :func:`calibration_bringup.experiment_figures.paired_difference` (median difference, how often the
 second is lower, two-sided Wilcoxon p).
+
 Usage (from the repository root)::
 
     python -m tools.experiment_compare results/one-eye results/experiment-ours --names "one eye" "both eyes"

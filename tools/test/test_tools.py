@@ -237,7 +237,6 @@ def test_experiment_compare_bounds_the_ratio_of_means_in_pairs() -> None:
     assert np.isnan(ratio_interval(first, runs(base[:1], reps[:1]), 'position_mm')[0])
 
 
-
 def test_experiment_compare_refuses_two_experiments_with_nothing_to_pair() -> None:
     from calibration_bringup.experiment_figures import MethodRuns
     from tools.experiment_compare import compare

@@ -6,8 +6,8 @@ it uses to predict ``R(theta)``, and the history of visited configurations. With
 it never selects a configuration inside the margins nor one whose straight joint-space path from
 where the arm is leaves them (refusals are counted per selection). A list of poses (reviewed from
 a plan, or taught by hand) is visited first, each checked the same way, before the strategy takes
-over; :meth:`Planner.plan` plans such a list from an estimate without moving anything. The node feeds it estimates and outcomes; everything here is
-testable in plain Python.
+over; :meth:`Planner.plan` plans such a list from an estimate without moving anything. The node
+feeds it estimates and outcomes; everything here is testable in plain Python.
 """
 from __future__ import annotations
 

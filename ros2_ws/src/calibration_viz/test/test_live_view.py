@@ -94,27 +94,39 @@ def test_a_client_receives_the_arms_cameras_observations_and_updates(view) -> No
         assert any(m.get('name') == '/estimated_arm/links' for m in _messages(ws, {'/estimated_arm/links'}))
 
 
+def _orange(rgb: np.ndarray) -> np.ndarray:
+    """Pixels of the estimated arm's hue, shape (H, W) of bool, for an (H, W, 3) integer image."""
+    r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
+    return (r > g + 40) & (g > b + 30)
+
+
 @pytest.mark.skipif(CHROMIUM is None, reason='no chromium: install it (apt-get install chromium; .ci/run does)')
 def test_a_browser_draws_the_arm(view, tmp_path: Path) -> None:
     v, _ = view
-    shot = tmp_path / 'view.png'
-    # SwiftShader: software WebGL, as on a machine without a GPU. The virtual-time budget lets the
-    # client connect, receive the scene and render before the screenshot.
-    subprocess.run([CHROMIUM, '--headless', '--no-sandbox', '--use-angle=swiftshader', '--enable-unsafe-swiftshader',
-                    '--window-size=900,650', '--virtual-time-budget=10000', f'--screenshot={shot}', v.url],
-                   capture_output=True, timeout=120, check=True)
     import matplotlib.image
 
-    rgb = (matplotlib.image.imread(shot)[..., :3] * 255).astype(int)
+    # SwiftShader: software WebGL, as on a machine without a GPU. The virtual-time budget lets the
+    # client connect, receive the scene and render before the screenshot; the scene comes over a
+    # WebSocket in real time, which virtual time does not wait for, so on a loaded machine the
+    # page can be captured before it arrives (the likely cause of the one failure seen in a full
+    # run: 0 orange pixels). Capture again with a longer budget until the estimated arm shows, at
+    # most three times.
+    for attempt, budget in enumerate((10_000, 30_000, 60_000)):
+        shot = tmp_path / f'view{attempt}.png'
+        subprocess.run([CHROMIUM, '--headless', '--no-sandbox', '--use-angle=swiftshader', '--enable-unsafe-swiftshader',
+                        '--window-size=900,650', f'--virtual-time-budget={budget}', f'--screenshot={shot}', v.url],
+                       capture_output=True, timeout=180, check=True)
+        rgb = (matplotlib.image.imread(shot)[..., :3] * 255).astype(int)
+        if _orange(rgb[150:340, 380:560]).sum() > 300:
+            break
     assert rgb.shape[:2] == (650, 900)
     # Where the initial camera puts the arm: between the software-rendering notice (top left) and
     # the GUI panel (right). Lit and shaded, the arms are judged by hue: orange (the estimate) and
     # dark grey (the real arm) on the light background and grid.
     region = rgb[150:340, 380:560]
-    r, g, b = region[..., 0], region[..., 1], region[..., 2]
-    orange = (r > g + 40) & (g > b + 30)
+    orange = _orange(region)
     dark = (region.max(axis=-1) < 160) & (np.ptp(region, axis=-1) < 30)
-    assert orange.sum() > 300, f'estimated arm: {orange.sum()} orange pixels where it should be'
+    assert orange.sum() > 300, f'estimated arm: {orange.sum()} orange pixels where it should be ({attempt + 1} captures)'
     assert dark.sum() > 150, f'real arm: {dark.sum()} dark pixels where it should be'
     everywhere = rgb[..., 0] - rgb[..., 2] > 70
     assert everywhere[150:340, 380:560].sum() > 0.5 * everywhere[170:, :560].sum(), 'the arm is off its region'

@@ -10,10 +10,14 @@ one (they agree when the re-run reproduces the run), then how many runs lie insi
 how the innovations after the warm-up compare with the noise law (how many beyond its 99.99 %
 bound, against the 1 in 10,000 a right law gives; the median of the runs' median NIS). Exit
 status 1 when a requested run has no finished recording (the table then covers fewer runs).
+``--covariance`` re-runs the recordings with another posterior covariance than the runs used
+(the MAP estimator's ``covariance`` setting): the same observations, so the same estimates as long
+as the outlier verdicts, which the covariance enters, stay the same (the last column says so).
 
 Usage (from the repository root)::
 
     python -m tools.experiment_nees results/experiment-ours --methods AL --repetitions 20
+    python -m tools.experiment_nees results/experiment-ours --covariance sandwich
 """
 from __future__ import annotations
 
@@ -26,9 +30,13 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from body_schema.map_estimator import COVARIANCES
 
-def estimator_parameters(config: dict[str, Any], method: str) -> dict[str, Any]:
+
+def estimator_parameters(config: dict[str, Any], method: str, covariance: str = '') -> dict[str, Any]:
     """The estimator node's parameters of ``method``'s runs, from an experiment's ``config.json``.
+
+    ``covariance``, if not empty, replaces the runs' posterior covariance setting.
 
     Raises
     ------
@@ -41,15 +49,17 @@ def estimator_parameters(config: dict[str, Any], method: str) -> dict[str, Any]:
         raise KeyError(f'config.json has no settings for method {method!r}; it has '
                        f'{sorted(config.get("settings", {}))}') from None
     # The initial guess comes from the bag ('recorded'), so the seeds are not needed.
-    return {k.split('.', 1)[1]: v for k, v in settings.items() if k.startswith('estimator.')}
+    params = {k.split('.', 1)[1]: v for k, v in settings.items() if k.startswith('estimator.')}
+    return params | {'covariance': covariance} if covariance else params
 
 
-def run_nees(root: Path, method: str, repetitions: Sequence[int]) -> list[dict[str, Any]]:
-    """NEES and final errors of ``method``'s recorded runs ``repetitions`` under ``root``."""
+def run_nees(root: Path, method: str, repetitions: Sequence[int], covariance: str = '') -> list[dict[str, Any]]:
+    """NEES and final errors of ``method``'s recorded runs ``repetitions`` under ``root`` (re-run with
+    the posterior ``covariance`` if not empty, else the runs' own)."""
     from dh_estimator.evaluate import EvaluationSettings, evaluate_bag
 
     config = json.loads((root / 'config.json').read_text())
-    settings = EvaluationSettings.from_parameters(estimator_parameters(config, method))
+    settings = EvaluationSettings.from_parameters(estimator_parameters(config, method, covariance))
     out = []
     for rep in repetitions:
         bag = root / 'runs' / method / f'rep{rep:02d}.mcap'
@@ -75,6 +85,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument('output', type=Path, help='an experiment output directory (config.json, runs/)')
     ap.add_argument('--methods', nargs='+', default=['AL'])
     ap.add_argument('--repetitions', type=int, default=20, help='the first N repetitions [20]')
+    ap.add_argument('--covariance', choices=COVARIANCES, default='',
+                    help="re-run with this posterior covariance instead of the runs' own")
     args = ap.parse_args(argv)
     if not (args.output / 'config.json').exists():
         print(f'{args.output}: no config.json (not an experiment output directory)', file=sys.stderr)
@@ -85,7 +97,7 @@ def main(argv: Sequence[str] | None = None) -> int:
           '(expected) | median NIS (5.3) | re-run vs online (max diff mm) |')
     print('|---|---|---|---|---|---|---|---|')
     for method in args.methods:
-        rows = run_nees(args.output, method, range(args.repetitions))
+        rows = run_nees(args.output, method, range(args.repetitions), args.covariance)
         missing += args.repetitions - len(rows)
         for r in rows:
             print(f'  {method} rep {r["repetition"]} (seed {first + r["repetition"]}): NEES {r["nees"]:.1f} '

@@ -200,6 +200,18 @@ def test_experiment_nees_reruns_each_recorded_run_to_its_online_error(recorded_e
     # A repetition that was never run makes the table partial, and the exit status says so.
     assert experiment_nees.main([str(recorded_experiment), '--methods', 'AL', '--repetitions', '2']) == 1
     assert 'of the requested runs have no finished recording' in capsys.readouterr().err
+    # Another posterior covariance reaches the re-run's estimator, and only its covariance setting.
+    config = json.loads((recorded_experiment / 'config.json').read_text())
+    own = experiment_nees.estimator_parameters(config, 'AL')
+    assert experiment_nees.estimator_parameters(config, 'AL', 'gauss_newton') == own | {'covariance': 'gauss_newton'}
+    from dh_estimator.evaluate import EvaluationSettings
+    settings = EvaluationSettings.from_parameters(experiment_nees.estimator_parameters(config, 'AL', 'gauss_newton'))
+    assert settings.estimator.map_settings('sandwich_hc3').covariance == 'gauss_newton'   # over the description's
+    assert experiment_nees.main([str(recorded_experiment), '--repetitions', '1', '--covariance', 'gauss_newton']) == 0
+    (row,) = _rows(capsys.readouterr().out, '| method | runs |')
+    assert float(row[7]) < 1e-6
+    with pytest.raises(SystemExit):
+        experiment_nees.main([str(recorded_experiment), '--covariance', 'robust'])
 
 
 @pytest.mark.slow

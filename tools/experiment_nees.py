@@ -12,12 +12,13 @@ bound, against the 1 in 10,000 a right law gives; the median of the runs' median
 status 1 when a requested run has no finished recording (the table then covers fewer runs).
 ``--covariance`` re-runs the recordings with another posterior covariance than the runs used
 (the MAP estimator's ``covariance`` setting): the same observations, so the same estimates as long
-as the outlier verdicts, which the covariance enters, stay the same (the last column says so).
+as the change test, whose innovations the covariance enters, fires where it did (the last column
+says whether they did).
 
 Usage (from the repository root)::
 
     python -m tools.experiment_nees results/experiment-ours --methods AL --repetitions 20
-    python -m tools.experiment_nees results/experiment-ours --covariance sandwich
+    python -m tools.experiment_nees results/experiment-ours --covariance sandwich_white
 """
 from __future__ import annotations
 

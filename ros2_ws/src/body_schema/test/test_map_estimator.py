@@ -303,6 +303,35 @@ def test_leverage_correction_grows_where_few_observations_inform_a_direction():
     assert inflation(uneven) > inflation(even) + 0.05
 
 
+def test_per_row_spread_follows_a_law_of_the_wrong_shape_where_the_pooled_one_cannot():
+    # Stated noise 1 everywhere; the rows that see parameters 0-2 are really 0.4 wide and those
+    # that see parameter 3 0.8 wide (a law that overstates one component of a detection more
+    # than another). One pooled scale is too wide for the first and too narrow for the second.
+    from scipy.optimize import least_squares
+
+    from body_schema.map_estimator import sandwich_covariance
+
+    rng = np.random.default_rng(5)
+    X = np.zeros((200, 4))  # noqa: N806
+    X[:100, :3] = rng.normal(size=(100, 3))
+    X[100:, 3] = rng.normal(size=100)
+    sigma = np.r_[np.full(100, 0.4), np.full(100, 0.8)]
+    jp = 1e-3 * np.eye(4)
+    nees = {False: [], True: []}
+    for _ in range(300):
+        y = sigma * rng.normal(size=200)                     # truth 0
+
+        def fun(b):
+            return np.concatenate([jp @ b, y - X @ b])
+        res = least_squares(fun, np.zeros(4), loss='cauchy', f_scale=3.0)
+        for per_row in nees:
+            P = sandwich_covariance(jp, -X, res.fun[4:], 'cauchy', 3.0, per_row=per_row)  # noqa: N806
+            nees[per_row].append(res.x ** 2 / np.diag(P))      # per parameter, 1 on average if right
+    pooled, per_row = np.mean(nees[False], axis=0), np.mean(nees[True], axis=0)
+    assert pooled[3] > 1.5 and np.all(pooled[:3] < 0.6)        # too narrow, then too wide
+    assert np.all((per_row > 0.7) & (per_row < 1.4)), per_row    # 300 trials: +-0.1 of noise
+
+
 def test_sandwich_declines_without_enough_residuals():
     from body_schema.map_estimator import sandwich_covariance
 

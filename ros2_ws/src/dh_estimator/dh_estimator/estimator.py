@@ -119,7 +119,8 @@ class EstimatorSettings:
                               "residuals' spread measured at the solution: consistent when the noise law is "
                               "right only up to its scale or tails), 'sandwich_hc3' (the spread of "
                               "leverage-corrected residuals: also when few observations inform a "
-                              "direction) or 'gauss_newton' (the stated noise "
+                              "direction), 'sandwich_white' (each residual row's own spread: also when "
+                              "the law's shape is wrong) or 'gauss_newton' (the stated noise "
                               "taken as exact); empty: the robot description's noise_model.covariance, else "
                               f"'{_MAP.covariance}'", choices=('',) + COVARIANCES)
     camera_prior: str = setting('', 'MAP: estimate the camera pose with the table, prior one-sigma per axis '

@@ -3,8 +3,8 @@
 Two ``make experiment`` output directories meet the same real robots and initial guesses in the
 runs with the same seed, so their final errors pair up by seed (by repetition for CSVs without a
 ``seed`` column); runs of another seed base share none, and are refused. For every method both
-ran, this prints each experiment's mean and median final position and orientation error and
-discarded attempts, the ratio of the means (second over first) with its 95% paired bootstrap
+ran, this prints, over the shared seeds, each experiment's mean and median final position and
+orientation error, discarded attempts and movement, the ratio of the means (second over first) with its 95% paired bootstrap
 interval over the shared seeds (:func:`ratio_interval`), and the paired test of
 :func:`calibration_bringup.experiment_figures.paired_difference` (median difference, how often the
 second is lower, two-sided Wilcoxon p).
@@ -56,7 +56,9 @@ def compare(first: dict[str, MethodRuns], second: dict[str, MethodRuns], names: 
              f'median difference ({b} - {a}) | {b} lower | p |', '|---|---|---|---|---|---|---|---|---|---|']
     for method in methods:
         for column, label, digits in FIGURES:
-            fa, fb = first[method].final(column), second[method].final(column)
+            # Over the shared seeds, as the interval and the test: an experiment of 50 repetitions
+            # against one of its first 20 compares those 20 (each mean over its own runs did not).
+            fa, fb = paired_finals(first[method], second[method], column)
             # Second minus first: negative favours the second.
             n, median, second_lower, p = paired_difference(second[method], first[method], column)
             interval = interval_text(*ratio_interval(first[method], second[method], column))

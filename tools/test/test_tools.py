@@ -262,6 +262,11 @@ def test_experiment_compare_refuses_two_experiments_with_nothing_to_pair() -> No
     with pytest.raises(ValueError, match='AL: no seed in both experiments'):
         compare(runs('AL', [0, 1]), runs('AL', [1000, 1001]), ['a', 'b'])
     assert len(compare(runs('AL', [0, 1]), runs('AL', [1, 2]), ['a', 'b'])) == 2 + 4    # header + 4 figures
+    # The means, medians and ratio are over the shared seeds too: 50 runs against their first 20.
+    many, few = runs('AL', list(range(50))), runs('AL', list(range(20)))
+    many['AL'].columns['position_mm'][:, 1] = np.r_[np.full(20, 1.0), np.full(30, 3.0)]
+    row = compare(many, few, ['a', 'b'])[2].split(' | ')
+    assert row[2:5] == ['1.000 (1.000)', '1.000 (1.000)', '1.00']
     # Repetition 0 of seed base 1000 is another robot than repetition 0 of seed base 0: pairs by seed.
     base0, base1000 = runs('AL', [0, 1]), runs('AL', [0, 1])
     base0['AL'].seeds, base1000['AL'].seeds = np.array([0, 1]), np.array([1000, 1001])

@@ -4,8 +4,8 @@ Two ``make experiment`` output directories meet the same real robots and initial
 runs with the same seed, so their final errors pair up by seed (by repetition for CSVs without a
 ``seed`` column); runs of another seed base share none, and are refused. For every method both
 ran, this prints, over the shared seeds, each experiment's mean and median final position and
-orientation error, discarded attempts and movement, the ratio of the means (second over first) with its 95% paired bootstrap
-interval over the shared seeds (:func:`ratio_interval`), and the paired test of
+orientation error, discarded attempts and movement, the ratio of the means (second over first)
+with its 95% paired bootstrap interval (:func:`ratio_interval`), and the paired test of
 :func:`calibration_bringup.experiment_figures.paired_difference` (median difference, how often the
 second is lower, two-sided Wilcoxon p).
 

@@ -61,7 +61,7 @@ def compare(first: dict[str, MethodRuns], second: dict[str, MethodRuns], names: 
             fa, fb = paired_finals(first[method], second[method], column)
             # Second minus first: negative favours the second.
             n, median, second_lower, p = paired_difference(second[method], first[method], column)
-            interval = interval_text(*ratio_interval(first[method], second[method], column))
+            interval = interval_text(*paired_ratio_interval(fa, fb))
             lines.append(f'| {method} | {label} | {np.mean(fa):.{digits}f} ({np.median(fa):.{digits}f}) | '
                          f'{np.mean(fb):.{digits}f} ({np.median(fb):.{digits}f}) | {np.mean(fb) / np.mean(fa):.2f} | '
                          f'{interval} | {n} | {median:+.{digits}f} | {second_lower} | {p:.2g} |')

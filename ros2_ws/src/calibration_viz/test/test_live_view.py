@@ -117,14 +117,14 @@ def test_a_browser_draws_the_arm(view, tmp_path: Path) -> None:
                         '--window-size=900,650', f'--virtual-time-budget={budget}', f'--screenshot={shot}', v.url],
                        capture_output=True, timeout=180, check=True)
         rgb = (matplotlib.image.imread(shot)[..., :3] * 255).astype(int)
-        if _orange(rgb[150:340, 380:560]).sum() > 300:
+        # Where the initial camera puts the arm: between the software-rendering notice (top left)
+        # and the GUI panel (right). Lit and shaded, the arms are judged by hue: orange (the
+        # estimate) and dark grey (the real arm) on the light background and grid.
+        region = rgb[150:340, 380:560]
+        orange = _orange(region)
+        if orange.sum() > 300:
             break
     assert rgb.shape[:2] == (650, 900)
-    # Where the initial camera puts the arm: between the software-rendering notice (top left) and
-    # the GUI panel (right). Lit and shaded, the arms are judged by hue: orange (the estimate) and
-    # dark grey (the real arm) on the light background and grid.
-    region = rgb[150:340, 380:560]
-    orange = _orange(region)
     dark = (region.max(axis=-1) < 160) & (np.ptp(region, axis=-1) < 30)
     assert orange.sum() > 300, f'estimated arm: {orange.sum()} orange pixels where it should be ({attempt + 1} captures)'
     assert dark.sum() > 150, f'real arm: {dark.sum()} dark pixels where it should be'

@@ -5,7 +5,8 @@ runs with the same seed, so their final errors pair up by seed (by repetition fo
 ``seed`` column); runs of another seed base share none, and are refused. For every method both
 ran, this prints, over the shared seeds, each experiment's mean and median final position and
 orientation error, discarded attempts and movement, the ratio of the means (second over first)
-with its 95% paired bootstrap interval (:func:`ratio_interval`), and the paired test of
+with its 95% paired bootstrap interval
+(:func:`~calibration_bringup.experiment_figures.paired_ratio_interval`), and the paired test of
 :func:`calibration_bringup.experiment_figures.paired_difference` (median difference, how often the
 second is lower, two-sided Wilcoxon p).
 
@@ -28,12 +29,6 @@ from calibration_bringup.experiment_figures import (MethodRuns, interval_text, l
 #: (CSV column, label, digits) compared.
 FIGURES = (('position_mm', 'position [mm]', 3), ('orientation_deg', 'orientation [deg]', 3),
            ('discarded', 'discarded', 1), ('movement_deg', 'movement [deg]', 0))
-
-
-def ratio_interval(first: MethodRuns, second: MethodRuns, column: str) -> tuple[float, float]:
-    """95% interval of ``mean(second) / mean(first)`` of the final ``column`` over the shared
-    seeds (:func:`~calibration_bringup.experiment_figures.paired_ratio_interval`)."""
-    return paired_ratio_interval(*paired_finals(first, second, column))
 
 
 def compare(first: dict[str, MethodRuns], second: dict[str, MethodRuns], names: Sequence[str]) -> list[str]:

@@ -229,8 +229,10 @@ def test_visibility_attempts_scores_every_grid_point_on_the_rendered_attempts(
 
 
 def test_experiment_compare_bounds_the_ratio_of_means_in_pairs() -> None:
-    from calibration_bringup.experiment_figures import MethodRuns
-    from tools.experiment_compare import ratio_interval
+    from calibration_bringup.experiment_figures import MethodRuns, paired_finals, paired_ratio_interval
+
+    def ratio_interval(first: MethodRuns, second: MethodRuns, column: str) -> tuple[float, float]:
+        return paired_ratio_interval(*paired_finals(first, second, column))     # as compare() pairs them
 
     rng = np.random.default_rng(4)
     base = rng.uniform(0.05, 0.2, 50)               # seeds differ much more than the two runs of a seed

@@ -89,10 +89,11 @@ class LoopSettings:
         The watchdog: a target not reached in time stops the run (phase STOPPED; the node holds
         the arm where it is and exits non-zero) instead of going on with the next one.
     resend_after : float
-        Seconds (loop clock) after a command with the arm still where it was before the command is
-        sent once more (:meth:`CalibrationLoop.resend_due`): a command lost to late discovery or a
-        dropped connection, not a slow arm (an arm that has started moving is never re-commanded).
-        0 never re-sends.
+        Seconds after a command with the arm still where it was before the command is sent once
+        more (:meth:`CalibrationLoop.resend_due`): a command lost to late discovery or a dropped
+        connection, not a slow arm (an arm that has started moving is never re-commanded). Counted
+        on both clocks: the still joint state must be stamped this long after the command and have
+        arrived this long after it on the wall clock. 0 never re-sends.
     """
 
     iterations: int = setting(50, 'Iterations (measurement attempts) of the run', (1, 100000))
@@ -108,7 +109,7 @@ class LoopSettings:
     stop_on_unreachable: bool = setting(True, 'Watchdog: a target not reached within settle_timeout beyond the '
                                               'commanded duration stops the run (the arm is held where it is, the '
                                               'node exits with status 3) instead of going on')
-    resend_after: float = setting(1.0, 'Seconds (sim) after a command with the arm not yet moving before the '
+    resend_after: float = setting(1.0, 'Seconds (sim and wall) after a command with the arm not yet moving before the '
                                   'command is sent once more (a lost command); 0 never re-sends', (0.0, 1e4))
 
     def __post_init__(self) -> None:
@@ -171,16 +172,25 @@ class CalibrationLoop:
     settings : LoopSettings
     clock : callable
         Current time [s] on the clock of the joint-state and marker stamps.
+    wall_clock : callable, optional
+        Current wall (steady) time [s], read when a command goes out and when a joint state
+        arrives; None reads ``clock``. In the node ``clock`` is sim time, which stands still while a
+        selection blocks the node: the joint states queued meanwhile arrive at once after the
+        command, stamped up to the selection's length after the stale command time, and must not
+        count as an arm that ignored it.
     """
 
-    def __init__(self, planner: Planner, settings: LoopSettings, clock: Callable[[], float]) -> None:
+    def __init__(self, planner: Planner, settings: LoopSettings, clock: Callable[[], float],
+                 wall_clock: Callable[[], float] | None = None) -> None:
         self.planner = planner
         self.settings = settings
         self.clock = clock
+        self.wall_clock = clock if wall_clock is None else wall_clock
         self.phase = Phase.WAITING
         self.q: NDArray[np.float64] | None = None
         self.q_prev: NDArray[np.float64] | None = None
         self.q_time = 0.0
+        self.q_wall = 0.0                   # when the last joint state arrived (wall clock)
         self.target: NDArray[np.float64] | None = None
         self.reached: NDArray[np.float64] | None = None
         self.selection_seconds = 0.0
@@ -189,6 +199,7 @@ class CalibrationLoop:
         self.duration = 0.0
         self.stop_reason = ''
         self.t_command = 0.0
+        self.w_command = 0.0                # when the command went out (wall clock)
         self.q_command: NDArray[np.float64] | None = None   # where the arm was when commanded
         self.resent = False
         self.t_settled = 0.0
@@ -227,6 +238,7 @@ class CalibrationLoop:
         """Joint positions ``q`` (L,) [rad] stamped ``t``; may settle a move."""
         self._now()
         self.q_prev, self.q, self.q_time = self.q, np.asarray(q, dtype=float), float(t)
+        self.q_wall = self.wall_clock()
         if self.phase is Phase.MOVING:
             self._check_settled()
 
@@ -255,7 +267,7 @@ class CalibrationLoop:
         self.selection_seconds = sel.seconds
         self.duration = float(np.max(np.abs(self.target - self.q))) / self.settings.speed
         self.phase = Phase.MOVING
-        self.t_command = self._now()
+        self.t_command, self.w_command = self._now(), self.wall_clock()
         self.q_command, self.resent = self.q.copy(), False
         self.detected = self.frame_stamp = self.frame_eyes = None
         self.bad_frames, self.bad_reason = 0, ''
@@ -337,15 +349,17 @@ class CalibrationLoop:
     def resend_due(self) -> bool:
         """Whether to send the current command once more (call periodically while moving).
 
-        True once per iteration, when ``resend_after`` seconds have passed since the command, a joint
-        state stamped after that shows the arm still within ``settle_tolerance`` of where it was
-        commanded from, and the target is elsewhere: the command was most likely never delivered
-        (a subscriber discovered late misses a command published before it matched). The caller
-        publishes ``target`` with ``duration`` again; the watchdog's deadline is unchanged.
+        True once per iteration, when a joint state stamped ``resend_after`` seconds after the command,
+        and arrived that long after it on the wall clock, shows the arm still within
+        ``settle_tolerance`` of where it was commanded from, and the target is elsewhere: the
+        command was most likely never delivered (a subscriber discovered late misses a command
+        published before it matched). The caller publishes ``target`` with ``duration`` again; the
+        watchdog's deadline is unchanged.
         """
         s = self.settings
         if (self.phase is not Phase.MOVING or self.resent or s.resend_after <= 0 or self.q_command is None
-                or self.q is None or self.q_time < self.t_command + s.resend_after):
+                or self.q is None or self.q_time < self.t_command + s.resend_after
+                or self.q_wall < self.w_command + s.resend_after):
             return False
         tol = s.settle_tolerance
         if np.max(np.abs(self.q - self.q_command)) > tol or np.max(np.abs(self.q - self.target)) <= tol:

@@ -51,7 +51,7 @@ occlusion_a0, occlusion_b0, occlusion_prior ('flat' | 'geometric'), occlusion_mo
 'expected' | 'gain'), criterion ('a_optimal' | 'v_optimal'), box_samples, q_length, q_angle, visibility_margin,
 visibility_marker_widths, eye_correlation, occlusion_per_eye, eye_occlusion_length_scale (PlannerSettings);
 iterations, settle_tolerance (rad), settle_timeout (s, sim), settle_time (s, sim),
-outcome_timeout (s, sim), max_joint_speed_deg, speed_scale, stop_on_unreachable, resend_after (s, sim)
+outcome_timeout (s, sim), max_joint_speed_deg, speed_scale, stop_on_unreachable, resend_after (s, sim and wall)
 (LoopSettings);
 noise_model ('pose_dependent' | 'constant'), cn_sigma_pos, cn_sigma_rot_deg, pdn_a_pos, pdn_b_pos, pdn_a_rot, pdn_b_rot (NoiseSettings,
 PoseDependentSettings; the pdn_* negative by default: the robot description's fitted law).
@@ -141,7 +141,7 @@ class SelectorNode(Node):
                                    f'{strategy.strategy}')
         self.n_covariance = self.model.n_params + (0 if extrinsics is None else extrinsics.n)
         self.iterations = loop_settings.iterations
-        self.loop = CalibrationLoop(self.planner, loop_settings, self.now)
+        self.loop = CalibrationLoop(self.planner, loop_settings, self.now, time.monotonic)
         self.progress_file = Path(self.settings.progress_file) if self.settings.progress_file else None
         resumed = 0
         if self.progress_file is not None:

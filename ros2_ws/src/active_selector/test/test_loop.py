@@ -203,6 +203,26 @@ def test_a_command_the_arm_never_started_on_is_sent_once_more(loop):
     assert not loop.resend_due()
 
 
+def test_joint_states_queued_during_a_long_selection_do_not_resend():
+    # In the node the loop clock is sim time, read from /clock, which stands still while a selection
+    # blocks the node; the joint states queued meanwhile (stamped up to the selection's length after
+    # the stale command time) arrive at once after the command and show an arm that has had no
+    # chance to move. Only a still arm seen resend_after of wall time after the command is resent.
+    planner = Planner(ARM, PoseDependentNoise(), PlannerSettings(SelectorConfig(strategy='random', seed=4)))
+    wall = Clock()
+    wall.t = 100.0
+    lp = CalibrationLoop(planner, LoopSettings(settle_tolerance=TOL, resend_after=1.0), Clock(), wall)
+    lp.joint_state(0.0, START)
+    wall.t = 101.5                                              # selecting took 1.5 s: sim time went on
+    lp.select(None, None, None)
+    wall.t = 101.51
+    lp.joint_state(1.5, START)                                  # queued before the command went out
+    assert not lp.resend_due()
+    wall.t = 102.6
+    lp.joint_state(2.6, START)                                  # a second after the command: still there
+    assert lp.resend_due()
+
+
 @pytest.mark.parametrize('moved', ['started', 'at the target', 'never'])
 def test_an_arm_that_moves_or_needs_no_motion_is_not_commanded_again(moved):
     planner = Planner(ARM, PoseDependentNoise(), PlannerSettings(SelectorConfig(strategy='random', seed=4)))

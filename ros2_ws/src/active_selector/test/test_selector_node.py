@@ -284,6 +284,17 @@ def test_a_command_the_arm_never_started_on_is_sent_once_more(ros, capfd):
     assert probe.node.phase is Phase.AWAITING_OUTCOME
 
 
+def test_joint_states_stamped_late_but_arriving_at_once_are_not_a_lost_command(ros, capfd):
+    # As the joint states queued while a selection blocked the node: stamped past resend_after (on
+    # the clock that stood still meanwhile), they arrive right after the command.
+    probe = Probe(ros, strategy='random', iterations=3, seed=6, resend_after=2.0, settle_timeout=30.0)
+    probe.target()
+    q0 = np.mean(ARM.calibration_box, axis=1)
+    probe.joints(q0, ahead=2.5)
+    ros.spin_for(0.3)
+    assert len(probe.commands) == 1 and 'sending it again' not in capfd.readouterr().err
+
+
 @pytest.mark.parametrize('name, value', [('strategy', 'best'), ('noise_model', 'pdn'), ('eye', 'middle')])
 def test_bad_choices_are_refused_by_name(ros, name, value):
     with pytest.raises(ValueError, match=value):

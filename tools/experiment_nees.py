@@ -13,12 +13,15 @@ status 1 when a requested run has no finished recording (the table then covers f
 ``--covariance`` re-runs the recordings with another posterior covariance than the runs used
 (the MAP estimator's ``covariance`` setting): the same observations, so the same estimates as long
 as the change test, whose innovations the covariance enters, fires where it did (the last column
-says whether they did).
+says whether they did). ``--set estimator.NAME=VALUE`` re-runs them with any other estimator parameter
+changed; the table's last columns count the runs' outlier verdicts online and in the re-run (the
+MAP estimator's ``verdict_nfev``, for one, changes only the verdicts).
 
 Usage (from the repository root)::
 
     python -m tools.experiment_nees results/experiment-ours --methods AL --repetitions 20
     python -m tools.experiment_nees results/experiment-ours --covariance sandwich_white
+    python -m tools.experiment_nees results/experiment-ours --set estimator.verdict_nfev=200
 """
 from __future__ import annotations
 
@@ -34,10 +37,12 @@ import numpy as np
 from body_schema.map_estimator import COVARIANCES
 
 
-def estimator_parameters(config: dict[str, Any], method: str, covariance: str = '') -> dict[str, Any]:
+def estimator_parameters(config: dict[str, Any], method: str, covariance: str = '',
+                         overrides: dict[str, Any] | None = None) -> dict[str, Any]:
     """The estimator node's parameters of ``method``'s runs, from an experiment's ``config.json``.
 
-    ``covariance``, if not empty, replaces the runs' posterior covariance setting.
+    ``covariance``, if not empty, replaces the runs' posterior covariance setting; ``overrides``
+    (parameter name to value) replace or add any others.
 
     Raises
     ------
@@ -51,16 +56,34 @@ def estimator_parameters(config: dict[str, Any], method: str, covariance: str = 
                        f'{sorted(config.get("settings", {}))}') from None
     # The initial guess comes from the bag ('recorded'), so the seeds are not needed.
     params = {k.split('.', 1)[1]: v for k, v in settings.items() if k.startswith('estimator.')}
-    return params | {'covariance': covariance} if covariance else params
+    return params | ({'covariance': covariance} if covariance else {}) | (overrides or {})
 
 
-def run_nees(root: Path, method: str, repetitions: Sequence[int], covariance: str = '') -> list[dict[str, Any]]:
+def parse_override(text: str) -> tuple[str, Any]:
+    """``estimator.NAME=VALUE`` (the experiment's ``--set`` form and typing) -> ``(NAME, VALUE)``.
+
+    Raises
+    ------
+    ValueError
+        Naming ``text``, if it is not ``NODE.NAME=VALUE`` or its node is not the estimator.
+    """
+    from calibration_bringup.experiment import parse_override as parse
+
+    node, name, value = parse(text)
+    if node != 'estimator':
+        raise ValueError(f'--set {text!r}: only estimator parameters reach the re-run')
+    return name, value
+
+
+def run_nees(root: Path, method: str, repetitions: Sequence[int], covariance: str = '',
+             overrides: dict[str, Any] | None = None) -> list[dict[str, Any]]:
     """NEES and final errors of ``method``'s recorded runs ``repetitions`` under ``root`` (re-run with
-    the posterior ``covariance`` if not empty, else the runs' own)."""
+    the posterior ``covariance`` if not empty, else the runs' own, and the estimator parameters
+    ``overrides``)."""
     from dh_estimator.evaluate import EvaluationSettings, evaluate_bag
 
     config = json.loads((root / 'config.json').read_text())
-    settings = EvaluationSettings.from_parameters(estimator_parameters(config, method, covariance))
+    settings = EvaluationSettings.from_parameters(estimator_parameters(config, method, covariance, overrides))
     out = []
     for rep in repetitions:
         bag = root / 'runs' / method / f'rep{rep:02d}.mcap'
@@ -69,7 +92,8 @@ def run_nees(root: Path, method: str, repetitions: Sequence[int], covariance: st
             print(f'{method} rep {rep}: no finished recording ({bag.name}); skipped', file=sys.stderr)
             continue
         with table.open(newline='') as f:
-            online = max(csv.DictReader(f), key=lambda r: int(r['iteration']))
+            records = list(csv.DictReader(f))
+        online = max(records, key=lambda r: int(r['iteration']))
         ev = evaluate_bag(bag, settings)
         lo, hi = ev.nees_band or (float('nan'), float('nan'))
         inn = ev.innovations
@@ -77,7 +101,9 @@ def run_nees(root: Path, method: str, repetitions: Sequence[int], covariance: st
                     'in_band': bool(lo <= ev.nees_identifiable <= hi),
                     'position_mm': ev.rows[-1].position_mm, 'online_position_mm': float(online['position_mm']),
                     'innovations': 0 if inn is None else inn.count, 'beyond': 0 if inn is None else inn.beyond,
-                    'median_nis': float('nan') if inn is None else inn.median})
+                    'median_nis': float('nan') if inn is None else inn.median,
+                    'online_outliers': sum(r['outcome'] == 'outlier' for r in records),
+                    'outlier_verdicts': ev.counters.get('outlier_verdicts', 0)})
     return out
 
 
@@ -88,22 +114,31 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument('--repetitions', type=int, default=20, help='the first N repetitions [20]')
     ap.add_argument('--covariance', choices=COVARIANCES, default='',
                     help="re-run with this posterior covariance instead of the runs' own")
+    ap.add_argument('--set', action='append', default=[], metavar='estimator.NAME=VALUE', dest='overrides',
+                    help='re-run with this estimator parameter changed (repeatable)')
     args = ap.parse_args(argv)
+    try:
+        overrides = dict(parse_override(o) for o in args.overrides)
+    except ValueError as exc:
+        print(f'experiment_nees: {exc}', file=sys.stderr)
+        return 2
     if not (args.output / 'config.json').exists():
         print(f'{args.output}: no config.json (not an experiment output directory)', file=sys.stderr)
         return 2
     first = json.loads((args.output / 'config.json').read_text())['seed_base']
     missing = 0
     print('| method | runs | NEES in its band | NEES median | band (95 %) | innovations beyond the 99.99 % bound '
-          '(expected) | median NIS (5.3) | re-run vs online (max diff mm) |')
-    print('|---|---|---|---|---|---|---|---|')
+          '(expected) | median NIS (5.3) | re-run vs online (max diff mm) | outlier verdicts online | '
+          're-run |')
+    print('|---|---|---|---|---|---|---|---|---|---|')
     for method in args.methods:
-        rows = run_nees(args.output, method, range(args.repetitions), args.covariance)
+        rows = run_nees(args.output, method, range(args.repetitions), args.covariance, overrides)
         missing += args.repetitions - len(rows)
         for r in rows:
             print(f'  {method} rep {r["repetition"]} (seed {first + r["repetition"]}): NEES {r["nees"]:.1f} '
                   f'band {r["band"][0]:.1f}-{r["band"][1]:.1f} {"in" if r["in_band"] else "OUT"}; '
-                  f'{r["position_mm"]:.3f} mm (online {r["online_position_mm"]:.3f})', file=sys.stderr)
+                  f'{r["position_mm"]:.3f} mm (online {r["online_position_mm"]:.3f}); outlier verdicts '
+                  f'{r["online_outliers"]} online, {r["outlier_verdicts"]} re-run', file=sys.stderr)
         if not rows:
             continue
         nees = np.array([r['nees'] for r in rows])
@@ -114,7 +149,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         median_nis = f'{np.median(medians):.1f}' if medians else 'n/a'
         print(f'| {method} | {len(rows)} | {sum(r["in_band"] for r in rows)} of {len(rows)} | {np.median(nees):.1f} | '
               f'{band[0]:.1f}-{band[1]:.1f} | {beyond} of {count} ({count * 1e-4:.2f}) | '
-              f'{median_nis} | {diff:.3f} |')
+              f'{median_nis} | {diff:.3f} | {sum(r["online_outliers"] for r in rows)} | '
+              f'{sum(r["outlier_verdicts"] for r in rows)} |')
     if missing:
         # A table over fewer runs than asked for is partial: say so in the exit status too.
         print(f'experiment_nees: {missing} of the requested runs have no finished recording', file=sys.stderr)

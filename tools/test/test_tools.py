@@ -195,6 +195,7 @@ def test_experiment_nees_reruns_each_recorded_run_to_its_online_error(recorded_e
     (row,) = _rows(capsys.readouterr().out, '| method | runs |')
     assert row[:3] == ['AL', '1', row[2]] and row[2].endswith('of 1')
     assert float(row[3]) > 0 and float(row[7]) < 1e-6          # the re-run ends at the online error
+    assert row[8] == row[9]                                     # ... with the online verdicts
     with pytest.raises(KeyError, match="no settings for method 'CCSAL'"):
         experiment_nees.run_nees(recorded_experiment, 'CCSAL', [0])
     # A repetition that was never run makes the table partial, and the exit status says so.
@@ -212,6 +213,15 @@ def test_experiment_nees_reruns_each_recorded_run_to_its_online_error(recorded_e
     assert float(row[7]) < 1e-6
     with pytest.raises(SystemExit):
         experiment_nees.main([str(recorded_experiment), '--covariance', 'robust'])
+    # Any other estimator parameter reaches the re-run's estimator.
+    assert experiment_nees.estimator_parameters(config, 'AL', overrides={'verdict_nfev': 200}) == \
+        own | {'verdict_nfev': 200}
+    assert experiment_nees.parse_override('estimator.verdict_nfev=200') == ('verdict_nfev', 200)
+    assert experiment_nees.main([str(recorded_experiment), '--repetitions', '1',
+                                 '--set', 'estimator.verdict_nfev=200']) == 0
+    (row,) = _rows(capsys.readouterr().out, '| method | runs |')
+    assert int(row[9]) <= int(row[8])
+    assert experiment_nees.main([str(recorded_experiment), '--set', 'selector.seed=1']) == 2
 
 
 @pytest.mark.slow

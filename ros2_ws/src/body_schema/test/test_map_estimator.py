@@ -73,6 +73,31 @@ def test_outlier_is_flagged_and_does_not_spoil_the_estimate(arm):
     assert ev(est.x).position_mm < before + 1.0        # the robust loss keeps its pull bounded
 
 
+def test_a_truncated_solve_does_not_judge_clean_data_an_outlier(arm):
+    """A re-solve stopped at max_nfev leaves clean observations beyond the bound (the solver's
+    misfit, not the data's); verdict_nfev solves on before the verdict, and a real outlier is
+    still one."""
+    def verdicts(verdict_nfev):
+        flagged, resolved = 0, 0
+        for seed in range(3):
+            obs = SyntheticRun(arm, _true(arm, seed), PoseDependentNoise(), seed)(12)
+            est = MapEstimator(arm.base, sampling.perturb_dh(arm.dh, seed), sampling.initial_covariance(7),
+                               MapSettings(max_nfev=3, verdict_nfev=verdict_nfev), limits=arm.limits)
+            flagged += sum(est.update(o.q, o.pose, o.R).outlier for o in obs)
+            resolved += est.n_resolved
+        return flagged, resolved
+
+    flagged, resolved = verdicts(0)
+    assert flagged >= 3 and resolved == 0              # the truncated solves' verdicts
+    flagged, resolved = verdicts(200)
+    assert flagged == 0 and resolved >= 3
+    true, obs, est, _ = _run(arm, 1, 25, MapSettings(max_nfev=3, verdict_nfev=200))
+    z = arm.with_dh(true).forward_kinematics(obs[3].q)
+    z[:3, 3] += 0.15                                   # a 15 cm wrong detection
+    u = est.update(obs[3].q + 1e-3, z, obs[3].R)
+    assert u.outlier and u.resolved
+
+
 def test_change_detection_follows_a_changed_body_and_stays_quiet_otherwise(arm):
     changed = _true(arm, 2).copy()
     changed[4, 1] += 0.010                             # forearm 10 mm longer

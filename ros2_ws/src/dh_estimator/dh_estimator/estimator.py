@@ -69,7 +69,7 @@ class EstimatorSettings:
     iterations : int
         EKF: linearisations per update (1: the paper's EKF; more: iterated EKF).
     loss, loss_scale, outlier_probability, window, change_probability, change_window,
-    change_separation_deg, jump_length, jump_angle, max_nfev :
+    change_separation_deg, jump_length, jump_angle, max_nfev, verdict_nfev :
         MAP: see :class:`body_schema.map_estimator.MapSettings`.
     same_config_tol : float
         Max-abs joint difference [rad] under which a configuration counts as the previous one.
@@ -115,6 +115,9 @@ class EstimatorSettings:
     jump_angle: float = setting(_MAP.jump_angle, 'MAP: standard deviation of a detected change for alpha, '
                                 'offset [rad]', (1e-6, 3.2))
     max_nfev: int = setting(_MAP.max_nfev, 'MAP: residual evaluations per re-solve', (1, 10000))
+    verdict_nfev: int = setting(_MAP.verdict_nfev, 'MAP: when a re-solve stopped at max_nfev with the new '
+                                'observation beyond the outlier bound, solve on for up to this many more '
+                                'evaluations before the verdict (0: judge the truncated solve)', (0, 100000))
     covariance: str = setting('', "MAP: posterior covariance, 'sandwich' (the robust estimate's own, with the "
                               "residuals' spread measured at the solution: consistent when the noise law is "
                               "right only up to its scale or tails), 'sandwich_hc3' (the spread of "
@@ -153,6 +156,7 @@ class EstimatorSettings:
         scale = self.loss_scale if self.loss_scale >= 0 else (loss_scale if loss_scale > 0 else _MAP.loss_scale)
         return MapSettings(loss=self.loss, loss_scale=scale,
                            outlier_probability=self.outlier_probability, max_nfev=self.max_nfev,
+                           verdict_nfev=self.verdict_nfev,
                            window=self.window, q_length=self.q_length, q_angle=self.q_angle,
                            change_probability=self.change_probability, change_window=self.change_window,
                            change_count=self.change_count,
@@ -284,10 +288,11 @@ class OnlineEstimator:
         if self.map is not None:
             return {'updates': self.map.n_updates, 'rejected': 0, 'duplicates': self.n_duplicates,
                     'outliers': self.map.n_outliers, 'changes': self.map.n_changes,
-                    'twin_moves': self.map.n_twin_moves, 'restarts': self.map.n_restarts}
+                    'twin_moves': self.map.n_twin_moves, 'restarts': self.map.n_restarts,
+                    'resolved': self.map.n_resolved, 'outlier_verdicts': self.map.n_outlier_verdicts}
         return {'updates': self.ekf.n_updates, 'rejected': self.ekf.n_rejected,
                 'duplicates': self.n_duplicates, 'outliers': self.ekf.n_rejected, 'changes': 0, 'twin_moves': 0,
-                'restarts': 0}
+                'restarts': 0, 'resolved': 0, 'outlier_verdicts': self.ekf.n_rejected}
 
     def describe_last(self) -> str:
         """One line on the last offered observation, for logs and status messages."""

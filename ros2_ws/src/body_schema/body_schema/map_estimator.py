@@ -449,6 +449,8 @@ class MapEstimator:
         updates judged an outlier (:attr:`n_outliers` counts those still beyond the bound now).
     outlier_run : int
         Consecutive outliers up to the last update.
+    converged : bool
+        The last re-solve ended before its evaluation cap (scipy's status other than 0).
     """
 
     def __init__(self, base: ArrayLike, x0: ArrayLike, P0: ArrayLike,  # noqa: N803

@@ -65,13 +65,20 @@ def parse_override(text: str) -> tuple[str, Any]:
     Raises
     ------
     ValueError
-        Naming ``text``, if it is not ``NODE.NAME=VALUE`` or its node is not the estimator.
+        Naming ``text``, if it is not ``NODE.NAME=VALUE``, its node is not the estimator or the
+        estimator has no such parameter.
     """
     from calibration_bringup.experiment import parse_override as parse
+    from calibration_interfaces.parameters import parameter_specs
+    from dh_estimator.node_settings import SETTINGS
 
     node, name, value = parse(text)
     if node != 'estimator':
         raise ValueError(f'--set {text!r}: only estimator parameters reach the re-run')
+    # A misspelt name would otherwise re-run silently with the runs' own settings.
+    known = {p.name for cls in SETTINGS for p in parameter_specs(cls)}
+    if name not in known:
+        raise ValueError(f'--set {text!r}: the estimator has no parameter {name!r}')
     return name, value
 
 

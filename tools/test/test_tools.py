@@ -222,6 +222,8 @@ def test_experiment_nees_reruns_each_recorded_run_to_its_online_error(recorded_e
     (row,) = _rows(capsys.readouterr().out, '| method | runs |')
     assert int(row[9]) <= int(row[8])
     assert experiment_nees.main([str(recorded_experiment), '--set', 'selector.seed=1']) == 2
+    with pytest.raises(ValueError, match="no parameter 'verdict_nfv'"):
+        experiment_nees.parse_override('estimator.verdict_nfv=200')
 
 
 @pytest.mark.slow

@@ -252,9 +252,15 @@ class InProcessGraph:
         classes = {'sim': SimNode, 'detector': DetectorNode, 'estimator': EstimatorNode, 'selector': SelectorNode}
         try:
             for key in NODES:
-                self._add(key, classes[key](context=context, start_parameter_services=parameter_services,
-                                            parameter_overrides=[Parameter(k, value=v) for k, v in
-                                                                 self.parameters[key].items()]))
+                node = classes[key](context=context, start_parameter_services=parameter_services,
+                                    parameter_overrides=[Parameter(k, value=v) for k, v in
+                                                         self.parameters[key].items()])
+                self._add(key, node)
+                # rclpy keeps an override no node declared without a word: a misspelt --set
+                # would run the experiment with the default instead.
+                undeclared = sorted(k for k in self.parameters[key] if not node.has_parameter(k))
+                if undeclared:
+                    raise ValueError(f'{key} has no parameter {", ".join(undeclared)}')
             if record_path is not None:
                 self._add('recorder', self._recorder(Path(record_path), parameter_services))
         except BaseException:

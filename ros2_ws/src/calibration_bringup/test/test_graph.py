@@ -53,6 +53,12 @@ def test_parameters_for_a_node_the_graph_lacks_are_refused(ros) -> None:
         InProcessGraph(ros.context, ros.executor, {'selectr': {'iterations': 3}})
 
 
+def test_a_parameter_no_node_declares_is_refused(ros) -> None:
+    # rclpy would keep the override unused: a misspelt --set ran with the default.
+    with pytest.raises(ValueError, match='estimator has no parameter verdict_nfv'):
+        InProcessGraph(ros.context, ros.executor, {'estimator': {'verdict_nfv': 200}})
+
+
 def test_callbacks_created_later_are_timed_and_keep_their_signature(ros) -> None:
     node = ros.node('timed')
     timer = CallbackTimer()

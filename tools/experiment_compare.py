@@ -8,7 +8,8 @@ orientation error, discarded attempts and movement, the ratio of the means (seco
 with its 95% paired bootstrap interval
 (:func:`~calibration_bringup.experiment_figures.paired_ratio_interval`), and the paired test of
 :func:`calibration_bringup.experiment_figures.paired_difference` (median difference, how often the
-second is lower, two-sided Wilcoxon p).
+second is lower, two-sided Wilcoxon p). A closing note says whether the two were made on the same
+numeric environment, where their ``config.json`` recorded it.
 
 Usage (from the repository root)::
 
@@ -23,8 +24,10 @@ from typing import Sequence
 
 import numpy as np
 
+from calibration_bringup.experiment import read_environments
 from calibration_bringup.experiment_figures import (MethodRuns, interval_text, load_metrics, paired_difference,
                                                    paired_finals, paired_ratio_interval)
+from calibration_interfaces.provenance import environment_note
 
 #: (CSV column, label, digits) compared.
 FIGURES = (('position_mm', 'position [mm]', 3), ('orientation_deg', 'orientation [deg]', 3),
@@ -71,11 +74,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = ap.parse_args(argv)
     try:
         first, second = (load_metrics(d / 'metrics.csv') for d in (args.first, args.second))
-        lines = compare(first, second, args.names or [args.first.name, args.second.name])
+        names = args.names or [args.first.name, args.second.name]
+        lines = compare(first, second, names)
+        note = environment_note({n: read_environments(d) for n, d in zip(names, (args.first, args.second))})
     except (OSError, ValueError) as exc:
         print(f'experiment_compare: {exc}', file=sys.stderr)
         return 2
-    print('\n'.join(lines))
+    print('\n'.join(lines + (['', note] if note else [])))
     return 0
 
 

@@ -29,6 +29,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from body_schema.identifiability import average_nees_band
+from calibration_interfaces.provenance import ENVIRONMENT_VARIABLES, distinct_environments, environment_differences
 
 __all__ = ['parse_seeds', 'summarise', 'read_records', 'read_summary', 'read_run_env', 'main']
 
@@ -146,11 +147,24 @@ def summarise(records: dict[int, dict[str, Any]], status: dict[int, int], comman
         k2 = [_within(r['extrinsics'][b], 2) for r in rec if b in r.get('extrinsics', {})]
         lines.append(f'- {b} pose components within one sigma: {sum(a for a, _ in k1)} of {sum(n for _, n in k1)} '
                      f'(a consistent estimate: about 68%); within two: {sum(a for a, _ in k2)} (about 95%)')
+    envs = distinct_environments(r.get('environment') for r in rec)
+    unrecorded = sum(1 for r in rec if not r.get('environment'))
+    if envs:
+        where = (f'one numeric environment ({_environment_text(envs[0])})' if len(envs) == 1 else
+                 f'{len(envs)} numeric environments (runs of two do not repeat one another step by step: '
+                 f'{"; ".join(environment_differences(envs[0], envs[1]))})')
+        lines.append(f'- made on {where}' + (f'; {unrecorded} runs recorded none' if unrecorded else ''))
     failed = sorted(s for s, rc in status.items() if rc != 0)
     if failed:
         lines.append(f'- runs that exited non-zero (see `seed_<S>.log`; 1 is the launcher\'s UNHEALTHY RUN): '
                      f'{failed}')
     return '\n'.join(lines) + '\n'
+
+
+def _environment_text(env: dict[str, str]) -> str:
+    """The entries of a numeric environment that choose kernels, on one line."""
+    keys = ('cpu', 'numpy_simd', 'blas', 'opencv', *ENVIRONMENT_VARIABLES)
+    return '; '.join(f'{k} {env[k]}' for k in keys if k in env)
 
 
 def read_run_env(run: Path) -> dict[str, str]:

@@ -8,7 +8,9 @@ parts from its pair at the first attempt that differs). Per figure (final positi
 orientation error, the information limit, and the realised error over that limit): each study's
 mean, median and range, the ratio of the means to the baseline's with its 95% interval (a
 percentile bootstrap over the common seeds, resampled in pairs), in how many seeds the study was
-lower, and the two-sided Wilcoxon signed-rank p of the paired differences (scipy).
+lower, and the two-sided Wilcoxon signed-rank p of the paired differences (scipy). Where the runs
+recorded their numeric environment, a closing note says whether the studies were made on the same
+one (on another, runs of the same seed do not repeat one another step by step).
 
 Usage (from the repository root)::
 
@@ -27,6 +29,7 @@ import numpy as np
 from scipy.stats import wilcoxon
 
 from calibration_bringup.experiment_figures import interval_text, paired_ratio_interval
+from calibration_interfaces.provenance import distinct_environments, environment_note
 from tools.seed_study import read_records, read_summary
 
 __all__ = ['Study', 'load_study', 'FIGURES', 'compare', 'main']
@@ -132,6 +135,10 @@ def compare(studies: Sequence[Study]) -> str:
             lines.append(f'| {label} | {_spread(a, fmt)} | {_spread(b, fmt)} | {b.mean() / a.mean():.3f} | '
                          f'{interval} | {int(np.sum(b < a))} of {len(seeds)} | {_wilcoxon_p(b, a):.2g} |')
         lines.append('')
+    note = environment_note({s.name: distinct_environments(r.get('environment') for r in s.records.values())
+                             for s in studies})
+    if note:
+        lines += [note, '']
     return '\n'.join(lines)
 
 

@@ -102,3 +102,17 @@ def test_the_committed_summaries_read_back_whole() -> None:
     for name in ('ur5e/summary.md', 'safety/ur5e-summary.md', 'safety/icub-summary.md'):
         back = read_summary((root / name).read_text())
         assert sorted(back) == list(range(1, 21)), name
+
+
+def test_the_summary_names_the_numeric_environment_or_says_the_runs_had_two() -> None:
+    env = {'cpu': 'Xeon', 'numpy_simd': 'X86_V2 + X86_V3', 'blas': 'openblas SkylakeX x2', 'opencv': '5.0.0 (...)',
+           'numpy': '2.4.6'}
+    one = {s: {**_record(0.6, 28.0, [0.0] * 6), 'environment': env} for s in (1, 2)}
+    text = summarise(one, {}, 'cmd')
+    assert '- made on one numeric environment (cpu Xeon; numpy_simd X86_V2 + X86_V3; blas openblas SkylakeX x2' in text
+    two = {**one, 3: {**_record(0.6, 28.0, [0.0] * 6), 'environment': {**env, 'blas': 'openblas Haswell x2'}},
+           4: _record(0.6, 28.0, [0.0] * 6)}
+    text = summarise(two, {}, 'cmd')
+    assert ('- made on 2 numeric environments (runs of two do not repeat one another step by step: blas: '
+            'openblas SkylakeX x2 -> openblas Haswell x2); 1 runs recorded none') in text
+    assert 'numeric environment' not in summarise({1: _record(0.6, 28.0, [0.0] * 6)}, {}, 'cmd')

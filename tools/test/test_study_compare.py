@@ -109,3 +109,15 @@ def test_a_study_in_parts_joins_its_seeds_and_refuses_one_seed_twice(tmp_path: P
         load_study(Path(f'{more}+{md}+{more}'))
     with pytest.raises(FileNotFoundError, match='gone.md: no such file'):
         load_study(Path(f'{md}+{tmp_path / "gone.md"}'))
+
+
+def test_studies_of_two_numeric_environments_are_said_not_to_repeat_step_by_step() -> None:
+    here, there = {'cpu': 'x', 'blas': 'SkylakeX'}, {'cpu': 'x', 'blas': 'Haswell'}
+    base = {s: {**_record(0.5), 'environment': here} for s in range(1, 4)}
+    same = compare([Study('a', base), Study('b', {s: dict(r) for s, r in base.items()})])
+    assert 'b and a were made on the same numeric environment' in same
+    other = compare([Study('a', base), Study('b', {s: {**r, 'environment': there} for s, r in base.items()})])
+    assert 'b was made on another numeric environment than a (blas: SkylakeX -> Haswell)' in other
+    old = compare([Study('a', {s: _record(0.5) for s in range(1, 4)}), Study('b', base)])
+    assert 'No numeric environment recorded for a' in old
+    assert 'numeric environment' not in compare([Study('a', {1: _record(0.5)}), Study('b', {1: _record(0.4)})])

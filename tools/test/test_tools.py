@@ -311,3 +311,28 @@ def test_experiment_compare_pairs_the_methods_both_ran(recorded_experiment: Path
     assert table['position [mm]'][0] == 'AL' and table['position [mm]'][5:9] == ['-', '1', '-0.100', '1']
     assert table['orientation [deg]'][4] == '1.00' and table['orientation [deg]'][7] == '+0.000'
     assert experiment_compare.main([str(tmp_path / 'nothing'), str(tmp_path)]) == 2
+
+
+def test_experiment_compare_says_whether_the_two_were_made_on_one_numeric_environment(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from tools.experiment_compare import main
+
+    def experiment(name: str, final: float, environments: list | None) -> Path:
+        d = tmp_path / name
+        d.mkdir()
+        rows = ['method,repetition,seed,iteration,position_mm,orientation_deg,movement_deg,discarded']
+        rows += [f'AL,{r},{r},{i},{100.0 if i == 0 else final * (1 + r)},1.0,{10.0 * i},0' for r in range(3)
+                 for i in (0, 1)]
+        (d / 'metrics.csv').write_text('\n'.join(rows) + '\n')
+        if environments is not None:
+            (d / 'config.json').write_text(json.dumps({'environments': environments}))
+        return d
+
+    here = {'hosts': ['vm'], 'cpu': 'x', 'blas': 'SkylakeX'}
+    a, b = experiment('a', 0.1, [here]), experiment('b', 0.2, [{**here, 'blas': 'Haswell'}])
+    assert main([str(a), str(b)]) == 0
+    assert 'b was made on another numeric environment than a (blas: SkylakeX -> Haswell)' in capsys.readouterr().out
+    assert main([str(a), str(experiment('c', 0.2, [{**here, 'hosts': ['other']}]))]) == 0
+    assert 'c and a were made on the same numeric environment' in capsys.readouterr().out     # hosts aside
+    assert main([str(experiment('d', 0.1, None)), str(experiment('e', 0.1, None))]) == 0
+    assert 'numeric environment' not in capsys.readouterr().out

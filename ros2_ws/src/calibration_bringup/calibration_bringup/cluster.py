@@ -8,7 +8,8 @@ built-in that installs nothing), the values as the driver has them (:func:`run_e
 
 Before the first run the driver runs :func:`check_node` on every node that has a CPU
 (:func:`check_nodes`): it imports what a run imports and, when runs are recorded, finds the
-message definitions through the ament index, as a run does. A node that fails stops the
+message definitions through the ament index, as a run does, and describes its numeric environment
+(:mod:`calibration_interfaces.provenance`; the experiment records it). A node that fails stops the
 experiment with one :class:`NodeEnvironmentError` naming the node and the cause (a node started
 from a Python without this workspace: ``ModuleNotFoundError: No module named
 'calibration_bringup'``). During the runs, :class:`FailFast` stops it when :data:`FAIL_FAST_RUNS`
@@ -25,15 +26,19 @@ import socket
 import sys
 import time
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Sequence
+
+from calibration_interfaces.provenance import ENVIRONMENT_VARIABLES, numeric_environment
 
 #: Environment variables a run reads, handed from the driver to every task when set there: the
 #: ament index (the recorder's message definitions, the parameter files) and the middleware's
 #: choice and profile. ROS_DOMAIN_ID and the discovery range are set per run (graph.ros_session).
+#: And the variables that choose the numeric kernels (provenance.ENVIRONMENT_VARIABLES): pinned on
+#: the driver, pinned on every node.
 RUN_ENV_VARS: tuple[str, ...] = ('AMENT_PREFIX_PATH', 'RMW_IMPLEMENTATION', 'FASTRTPS_DEFAULT_PROFILES_FILE',
-                                 'FASTDDS_DEFAULT_PROFILES_FILE')
+                                 'FASTDDS_DEFAULT_PROFILES_FILE', *ENVIRONMENT_VARIABLES)
 
 #: Modules a run imports on its node (graph.InProcessGraph's nodes; rclpy and the ROS messages
 #: with them); the recorder's is added when runs are recorded.
@@ -97,11 +102,13 @@ def task_options() -> dict[str, Any]:
 
 @dataclass(frozen=True)
 class NodeInfo:
-    """A node that passed :func:`check_node`."""
+    """A node that passed :func:`check_node`: ``numeric`` its numeric environment as a run there
+    sees it (:func:`calibration_interfaces.provenance.numeric_environment`)."""
 
     node_id: str
     host: str
     python: str
+    numeric: Mapping[str, str] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -201,7 +208,8 @@ class FailFast:
 def check_node(record: bool) -> NodeInfo:
     """On a node (as a Ray task): import what a run imports; with ``record``, find every contract
     type's message definition and the recorded ``/tf`` type's through the ament index, as the
-    recorder does. Raises what a run would raise there (``node_id`` '' outside Ray)."""
+    recorder does; and describe the node's numeric environment (the kernels its runs compute with).
+    Raises what a run would raise there (``node_id`` '' outside Ray)."""
     import ray
 
     for name in RUN_MODULES + ((RECORDER_MODULE,) if record else ()):
@@ -215,7 +223,7 @@ def check_node(record: bool) -> NodeInfo:
         for type_name in sorted({t.type for t in CONTRACT} | {TF_TYPE}):
             schema_for(type_name)
     node_id = ray.get_runtime_context().get_node_id() if ray.is_initialized() else ''
-    return NodeInfo(node_id, socket.gethostname(), sys.executable)
+    return NodeInfo(node_id, socket.gethostname(), sys.executable, numeric_environment())
 
 
 def check_nodes(record: bool, options: Mapping[str, Any], timeout: float = CHECK_TIMEOUT

@@ -78,6 +78,8 @@ from typing import Any, Iterator, Mapping, Sequence, TextIO
 
 import numpy as np
 
+from calibration_interfaces.provenance import distinct_environments, environment_differences
+
 from . import cluster
 from .graph import (NODES, InProcessGraph, default_parameters, merge_parameters, recorder_available, ros_session,
                     with_detector_eyes)
@@ -88,7 +90,7 @@ __all__ = ['METHODS', 'SYSTEMS', 'COLUMNS', 'Method', 'Seeds', 'RunSpec', 'Graph
            'RunError', 'RunResult', 'ExperimentOutcome', 'derive_seeds', 'plan_runs', 'node_parameters',
            'run_settings', 'settings_hash', 'settings_difference', 'is_finished', 'run_graph', 'execute_run',
            'parse_override', 'run_cautions',
-           'write_rows', 'read_rows', 'combine_runs', 'domain_ids', 'run_experiment', 'main']
+           'write_rows', 'read_rows', 'read_environments', 'combine_runs', 'domain_ids', 'run_experiment', 'main']
 
 
 @dataclass(frozen=True)
@@ -672,16 +674,54 @@ def _check_resume(root: Path, config: ExperimentConfig, settings: Mapping[str, M
 
 def _write_config(root: Path, config: ExperimentConfig, settings: Mapping[str, Mapping[str, Any]]) -> None:
     path = root / 'config.json'
-    # Methods of an earlier session not run in this one keep their recorded settings.
-    recorded = json.loads(path.read_text()).get('settings', {}) if path.exists() else {}
+    # Methods of an earlier session not run in this one keep their recorded settings, and the
+    # runs already made their numeric environments.
+    old = json.loads(path.read_text()) if path.exists() else {}
+    recorded = old.get('settings', {})
     recorded.update(settings)
     doc = {**asdict(config), 'output': str(root), 'methods': list(config.methods),
            'system_overrides': merge_parameters(SYSTEMS[config.system], config.overrides),
            'seeds': [{'repetition': r, 'seed': config.seed_base + r, **asdict(derive_seeds(config.seed_base + r))}
                      for r in range(config.repetitions)],
            'settings_hash': {m: settings_hash(s) for m, s in recorded.items()},
-           'settings': recorded}
+           'settings': recorded, **({'environments': old['environments']} if 'environments' in old else {})}
     _write_bytes(path, (json.dumps(doc, indent=2, default=str) + '\n').encode())
+
+
+def read_environments(root: Path) -> list[dict[str, str]]:
+    """The distinct numeric environments an experiment's runs were made on (``config.json``'s
+    ``environments``; empty for an experiment made before it was recorded)."""
+    path = Path(root) / 'config.json'
+    if not path.exists():
+        return []
+    recorded = json.loads(path.read_text()).get('environments', [])
+    return distinct_environments({k: v for k, v in e.items() if k != 'hosts'} for e in recorded)
+
+
+def _record_environments(root: Path, current: Mapping[str, Mapping[str, str]]) -> list[str]:
+    """Add this session's node environments (host -> environment) to ``config.json``'s
+    ``environments`` (one entry per distinct environment, with its hosts); a line for each
+    environment that differs from one already recorded there (runs of the two do not repeat)."""
+    path = root / 'config.json'
+    doc = json.loads(path.read_text()) if path.exists() else {}
+    recorded: list[dict[str, Any]] = doc.get('environments', [])
+    earlier = [{k: v for k, v in e.items() if k != 'hosts'} for e in recorded]
+    cautions = []
+    for host, env in current.items():
+        env = dict(env)
+        if env in earlier:
+            entry = recorded[earlier.index(env)]
+            entry['hosts'] = sorted(set(entry.get('hosts', [])) | {host})
+            continue
+        if earlier:
+            cautions.append(f'{root} now holds runs made on another numeric environment ({host}: '
+                            f'{"; ".join(environment_differences(earlier[0], env))}); runs of the two do not '
+                            'repeat one another step by step (docs/experiment.md, "Repeating a run")')
+        recorded.append({'hosts': [host], **env})
+        earlier.append(env)
+    doc['environments'] = recorded
+    _write_bytes(path, (json.dumps(doc, indent=2, default=str) + '\n').encode())
+    return cautions
 
 
 # ------------------------------------------------------------------------------------------
@@ -725,10 +765,12 @@ def ray_runtime(address: str | None, jobs: int) -> Iterator[None]:
 
 @dataclass
 class ExperimentOutcome:
-    """What :func:`run_experiment` did: this session's results (bytes dropped once written) and failures."""
+    """What :func:`run_experiment` did: this session's results (bytes dropped once written), failures,
+    and the numeric environment of each node that ran them (host -> environment)."""
 
     results: list[RunResult] = field(default_factory=list)
     failures: list[str] = field(default_factory=list)
+    environments: dict[str, dict[str, str]] = field(default_factory=dict)
 
 
 def run_cautions(results: Sequence[RunResult]) -> list[str]:
@@ -765,7 +807,7 @@ def _run_all(todo: list[RunSpec], config: ExperimentConfig, record: bool, hashes
     # Workers inherit their node's `ray start` environment, not this one: the tasks carry theirs.
     options = cluster.task_options()
     task = ray.remote(num_cpus=1, max_retries=0, scheduling_strategy='SPREAD', **options)(execute_run)
-    _, silent = cluster.check_nodes(record, options)    # raises naming a node that cannot run runs
+    nodes, silent = cluster.check_nodes(record, options)    # raises naming a node that cannot run runs
     if silent:
         stream.write(f'experiment: Ray node(s) {", ".join(silent)} did not answer the environment check within '
                      f'{cluster.CHECK_TIMEOUT:.0f} s; their runs go ahead unchecked\n')
@@ -773,7 +815,7 @@ def _run_all(todo: list[RunSpec], config: ExperimentConfig, record: bool, hashes
     shared = str(root.resolve()) if config.shared else None
     free, waiting = domain_ids(config), deque(todo)
     in_flight: dict[Any, tuple[RunSpec, int]] = {}
-    outcome = ExperimentOutcome()
+    outcome = ExperimentOutcome(environments={n.host or n.node_id: dict(n.numeric) for n in nodes})
     bar = tqdm(total=len(todo), unit='run', file=stream, disable=None, dynamic_ncols=True)
     try:
         while waiting or in_flight:
@@ -861,6 +903,9 @@ def run_experiment(config: ExperimentConfig, stream: TextIO = sys.stderr) -> Exp
     if todo:
         with ray_runtime(config.address, config.jobs):
             outcome = _run_all(todo, config, record, hashes, stream)
+    if outcome.environments:
+        for line in _record_environments(root, outcome.environments):
+            stream.write(f'experiment: CAUTION {line}\n')
     n = combine_runs(root, runs, root / 'metrics.csv') if config.combine else 0
     if config.combine:
         stream.write(f'experiment: {n} rows in {root / "metrics.csv"}\n')

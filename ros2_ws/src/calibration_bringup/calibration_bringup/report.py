@@ -3,10 +3,12 @@
 Re-runs the filter on the bag with :func:`dh_estimator.evaluate.evaluate_bag` (the online
 estimate is scored alongside), then writes ``metrics.csv``, ``error_vs_iteration.png``,
 ``error_vs_movement.png``, ``report.md`` (settings, summary, what is in the bag, how to open
-it) and ``summary.json`` (the headline figures, for studies over many runs: :func:`summary_record`)
-and prints the summary. ``scripts/run_calibration.sh`` calls it after every run. A bag cut
-short by a crash is read up to its last complete record; the console and ``report.md`` say how many
-messages were recovered and what was lost. An empty, missing or non-MCAP bag is one line on
+it) and ``summary.json`` (the headline figures, for studies over many runs: :func:`summary_record`,
+and under ``environment`` the numeric environment of the machine that wrote it,
+:func:`calibration_interfaces.provenance.numeric_environment`) and prints the summary.
+``scripts/run_calibration.sh`` calls it after every run. A bag cut short by a crash is read up to
+its last complete record; the console and ``report.md`` say how many messages were recovered and
+what was lost. An empty, missing or non-MCAP bag is one line on
 stderr and exit status 1.
 
 Usage::
@@ -30,6 +32,7 @@ from dh_estimator.evaluate import (Evaluation, EvaluationSettings, evaluate_bag,
 from body_schema.noise import NOISE_MODELS
 from calibration_interfaces import mcap_reader
 from calibration_interfaces.parameters import read_params_file
+from calibration_interfaces.provenance import numeric_environment
 
 __all__ = ['bag_contents', 'safety_record', 'render_report', 'summary_record', 'estimator_params_file', 'main']
 
@@ -211,7 +214,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f'calibration_report: {exc}', file=sys.stderr)
         return 1
     (out / 'report.md').write_text(text)
-    record = summary_record(ev, args.title or args.bag.stem, args.wall_seconds, safety)
+    # The run's nodes ran here, with this environment: whether the run repeats elsewhere depends on it.
+    record = {**summary_record(ev, args.title or args.bag.stem, args.wall_seconds, safety),
+              'environment': numeric_environment()}
     (out / 'summary.json').write_text(json.dumps(record, indent=1) + '\n')
     print(summary_text(ev))
     print(f'report: {out / "report.md"}')

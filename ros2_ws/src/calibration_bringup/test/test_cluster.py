@@ -134,3 +134,11 @@ def test_the_node_check_passes_here_and_names_what_a_run_would_miss(monkeypatch:
         cluster.check_node(record=False)       # an unrecorded run does not read the index
     finally:
         mcap_writer._schema_cached.cache_clear()
+
+
+def test_the_node_check_describes_the_numeric_environment_runs_there_compute_with() -> None:
+    info = cluster.check_node(record=False)
+    assert info.numeric['numpy'] and 'openblas' in info.numeric['blas'], info.numeric
+    # A kernel pinned on the driver is pinned on every node: the variables travel with the tasks.
+    assert set(cluster.run_environment({'OPENBLAS_CORETYPE': 'Haswell', 'NPY_DISABLE_CPU_FEATURES': 'X86_V4'},
+                                       prefix='/nonexistent')) == {'OPENBLAS_CORETYPE', 'NPY_DISABLE_CPU_FEATURES'}

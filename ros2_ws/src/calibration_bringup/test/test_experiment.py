@@ -337,3 +337,22 @@ def test_set_overrides_the_system_and_the_same_parameters_share_finished_runs() 
     assert ex.run_settings(via_set, 'AL') == ex.run_settings(ex.ExperimentConfig(system='paper'), 'AL')
     with pytest.raises(ValueError, match='planner'):
         ex.ExperimentConfig(overrides={'planner': {'gamma': 1.0}})
+
+
+def test_the_numeric_environments_of_the_runs_are_kept_across_sessions_and_a_new_one_is_cautioned(
+        tmp_path: Path) -> None:
+    config = ex.ExperimentConfig(repetitions=1, iterations=3, methods=('AL',), output=tmp_path, figures=False)
+    _fake_session(config)
+    assert ex.read_environments(tmp_path) == []          # made before environments were recorded
+    here = {'cpu': 'x', 'blas': 'openblas SkylakeX x1'}
+    assert ex._record_environments(tmp_path, {'vm': here}) == []
+    assert ex._record_environments(tmp_path, {'other-host': dict(here)}) == []      # the same one: no caution
+    recorded = json.loads((tmp_path / 'config.json').read_text())['environments']
+    assert recorded == [{'hosts': ['other-host', 'vm'], **here}]
+    # A later session (its config written again) keeps them; another environment is a caution naming it.
+    ex._write_config(tmp_path, config, {m: ex.run_settings(config, m) for m in config.methods})
+    assert ex.read_environments(tmp_path) == [here]
+    haswell = {**here, 'blas': 'openblas Haswell x1', 'OPENBLAS_CORETYPE': 'Haswell'}
+    (caution,) = ex._record_environments(tmp_path, {'vm': haswell})
+    assert 'another numeric environment (vm: OPENBLAS_CORETYPE: unset -> Haswell; blas: ' in caution
+    assert ex.read_environments(tmp_path) == [here, haswell]

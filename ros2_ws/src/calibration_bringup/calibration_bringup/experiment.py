@@ -816,6 +816,9 @@ def _run_all(todo: list[RunSpec], config: ExperimentConfig, record: bool, hashes
     free, waiting = domain_ids(config), deque(todo)
     in_flight: dict[Any, tuple[RunSpec, int]] = {}
     outcome = ExperimentOutcome(environments={n.host or n.node_id: dict(n.numeric) for n in nodes})
+    # Recorded before the first run, so an interrupted experiment's runs have theirs too.
+    for line in _record_environments(root, outcome.environments):
+        stream.write(f'experiment: CAUTION {line}\n')
     bar = tqdm(total=len(todo), unit='run', file=stream, disable=None, dynamic_ncols=True)
     try:
         while waiting or in_flight:
@@ -903,9 +906,6 @@ def run_experiment(config: ExperimentConfig, stream: TextIO = sys.stderr) -> Exp
     if todo:
         with ray_runtime(config.address, config.jobs):
             outcome = _run_all(todo, config, record, hashes, stream)
-    if outcome.environments:
-        for line in _record_environments(root, outcome.environments):
-            stream.write(f'experiment: CAUTION {line}\n')
     n = combine_runs(root, runs, root / 'metrics.csv') if config.combine else 0
     if config.combine:
         stream.write(f'experiment: {n} rows in {root / "metrics.csv"}\n')

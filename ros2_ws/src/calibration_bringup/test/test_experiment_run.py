@@ -5,6 +5,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import socket
 from dataclasses import asdict, replace
 from pathlib import Path
 
@@ -27,6 +28,9 @@ def test_two_methods_run_resume_and_report(tmp_path: Path) -> None:
     assert outcome.failures == [], log.getvalue()
     assert {r.spec.method for r in outcome.results} == set(config.methods)
     assert {r.domain_id for r in outcome.results} <= set(ex.domain_ids(config))
+    # The numeric environment the runs computed in, as the Ray worker saw it (threads as Ray sets them).
+    (env,) = ex.read_environments(tmp_path)
+    assert env['numpy'] and 'openblas' in env['blas'] and env == outcome.environments[socket.gethostname()]
 
     runs = {m: ex.read_rows(tmp_path / 'runs' / m / 'rep00.csv') for m in config.methods}
     for method, rows in runs.items():

@@ -688,6 +688,11 @@ def _write_config(root: Path, config: ExperimentConfig, settings: Mapping[str, M
     _write_bytes(path, (json.dumps(doc, indent=2, default=str) + '\n').encode())
 
 
+def _without_hosts(entry: Mapping[str, Any]) -> dict[str, str]:
+    """A ``config.json`` ``environments`` entry without its ``hosts``: the environment itself."""
+    return {k: v for k, v in entry.items() if k != 'hosts'}
+
+
 def read_environments(root: Path) -> list[dict[str, str]]:
     """The distinct numeric environments an experiment's runs were made on (``config.json``'s
     ``environments``; empty for an experiment made before it was recorded)."""
@@ -695,7 +700,7 @@ def read_environments(root: Path) -> list[dict[str, str]]:
     if not path.exists():
         return []
     recorded = json.loads(path.read_text()).get('environments', [])
-    return distinct_environments({k: v for k, v in e.items() if k != 'hosts'} for e in recorded)
+    return distinct_environments(_without_hosts(e) for e in recorded)
 
 
 def _record_environments(root: Path, current: Mapping[str, Mapping[str, str]]) -> list[str]:
@@ -705,7 +710,7 @@ def _record_environments(root: Path, current: Mapping[str, Mapping[str, str]]) -
     path = root / 'config.json'
     doc = json.loads(path.read_text()) if path.exists() else {}
     recorded: list[dict[str, Any]] = doc.get('environments', [])
-    earlier = [{k: v for k, v in e.items() if k != 'hosts'} for e in recorded]
+    earlier = [_without_hosts(e) for e in recorded]
     cautions = []
     for host, env in current.items():
         env = dict(env)

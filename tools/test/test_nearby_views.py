@@ -29,8 +29,8 @@ def test_nearest_earlier_is_the_max_abs_distance_to_any_earlier_target() -> None
 
 def test_runs_table_counts_missing_runs_and_main_refuses_a_directory_without_any(tmp_path: Path,
                                                                                capsys: pytest.CaptureFixture) -> None:
-    lines, missing = runs_table(tmp_path, ['AL', 'UCSAL'], 3)
-    assert missing == 6 and lines[-1] == '| UCSAL | 0 | | | | |'
+    lines, read, missing = runs_table(tmp_path, ['AL', 'UCSAL'], 3)
+    assert (read, missing) == (0, 6) and lines[-1] == '| UCSAL | 0 | | | | |'
     assert main(['--runs', str(tmp_path), '--methods', 'AL', '--repetitions', '2']) == 2
     assert 'no recording' in capsys.readouterr().err
 

@@ -127,15 +127,18 @@ _PSI_SLOPE = {
 }
 
 #: How the posterior covariance is computed (:attr:`MapSettings.covariance`).
-COVARIANCES = ('sandwich', 'sandwich_hc3', 'sandwich_white', 'gauss_newton')
+COVARIANCES = ('sandwich', 'sandwich_hc3', 'sandwich_blocks', 'sandwich_white', 'sandwich_white_hc3', 'gauss_newton')
+
+#: Group of each of a detection's six whitened residual rows: position 0, orientation 1.
+_POSE_BLOCKS = np.array([0, 0, 0, 1, 1, 1])
 
 #: Loss scales [standard deviations] a robot description or the estimator's parameter may set.
 LOSS_SCALE_RANGE = (0.1, 100.0)
 
 
 def sandwich_covariance(jp: NDArray[np.float64], jo: NDArray[np.float64], u: NDArray[np.float64], loss: str,
-                        scale: float, min_dof: float = 12.0, leverage: bool = False, per_row: bool = False
-                        ) -> NDArray[np.float64] | None:
+                        scale: float, min_dof: float = 12.0, leverage: bool = False, per_row: bool = False,
+                        groups: NDArray[np.int_] | None = None) -> NDArray[np.float64] | None:
     """Huber's sandwich covariance of a robust MAP estimate, ``A^-1 B A^-1``.
 
     With whitened observation residuals ``u`` that share one distribution, whatever its shape,
@@ -157,14 +160,24 @@ def sandwich_covariance(jp: NDArray[np.float64], jo: NDArray[np.float64], u: NDA
     and the degrees-of-freedom form then takes for quiet ones. For Gaussian errors of the stated
     scale it is the Gauss-Newton covariance or a little wider (``test_map_estimator``).
 
-    With ``per_row`` (``leverage`` then ignored) the spread is not pooled: ``B = Jp^T Jp + c sum_k
-    psi_k^2 j_k^T j_k`` with ``c = k / dof``, White's heteroskedasticity-consistent estimator with
-    the degrees-of-freedom factor (HC1; MacKinnon and White, 1985), ``A`` as above. It follows a
+    With ``per_row`` the spread is not pooled: ``B = Jp^T Jp + c sum_k psi_k^2 j_k^T j_k`` with
+    ``c = k / dof``, White's heteroskedasticity-consistent estimator with the degrees-of-freedom
+    factor (HC1; MacKinnon and White, 1985), ``A`` as above; with ``leverage`` as well, each row's
+    own correction instead, ``psi_k^2 / (1 - h_k)^2`` (their HC3), which HC1 lacks where a few
+    rows carry a direction. It follows a
     law whose shape is wrong, some residual rows wider than others relative to their stated
     variance (one whitened component of a detection overstated more than the rest), which one
     pooled scale cannot; it is noisier than the pooled spread with few rows per parameter, and
     with very unequal spreads the pooled slope leaves a bias (the wider rows sit further down the
     loss's slope).
+
+    With ``groups`` (and not ``per_row``) the spread is pooled within each group of rows and
+    not across them: ``B = Jp^T Jp + sum_g s_g Jo_g^T Jo_g``, ``s_g`` the group's spread (its
+    rows' leverage-corrected mean with ``leverage``, else over its share of the residual degrees
+    of freedom). Between one pooled scale and a scale per row: right when the law's scale is
+    wrong by a different factor for each group (a detection's position and its orientation),
+    and still pooled over many rows, so not as noisy as the per-row form with few rows per
+    parameter nor as optimistic where a few rows carry a direction alone.
 
     Parameters
     ----------
@@ -174,6 +187,8 @@ def sandwich_covariance(jp: NDArray[np.float64], jo: NDArray[np.float64], u: NDA
         Whitened observation rows.
     u : ndarray, shape (k,)
         Whitened observation residuals at the solution.
+    groups : ndarray of int, shape (k,), optional
+        Each observation row's group (labels ``0 .. G - 1``).
     loss : str
         One of :data:`LOSSES`; ``scale`` its ``f_scale``.
     min_dof : float
@@ -202,7 +217,27 @@ def sandwich_covariance(jp: NDArray[np.float64], jo: NDArray[np.float64], u: NDA
         # The slope stays pooled: a row's own psi' at the solution overstates the curvature where
         # the fit has pulled the residual in (the informative rows), which made the covariance
         # optimistic on the iCub's tuning runs (NEES median 34 against 28).
-        p = a_inv @ (prior + (u.size / dof) * (jo * (psi ** 2)[:, None]).T @ jo) @ a_inv
+        if leverage:
+            h = slope * np.einsum('ki,ij,kj->k', jo, a_inv, jo)
+            w = psi ** 2 / np.clip(1.0 - h, 0.05, 1.0) ** 2
+            p = a_inv @ (prior + (jo * w[:, None]).T @ jo) @ a_inv
+        else:
+            p = a_inv @ (prior + (u.size / dof) * (jo * (psi ** 2)[:, None]).T @ jo) @ a_inv
+        return 0.5 * (p + p.T)
+    if groups is not None:
+        groups = np.asarray(groups)
+        if groups.shape != u.shape:
+            raise ValueError(f'groups must have shape {u.shape} (one label per row), got {groups.shape}')
+        if leverage:
+            h = slope * np.einsum('ki,ij,kj->k', jo, a_inv, jo)
+            terms = psi ** 2 / np.clip(1.0 - h, 0.05, 1.0) ** 2
+        else:
+            terms = psi ** 2 * (u.size / dof)
+        b = prior.copy()
+        for g in np.unique(groups):
+            rows = groups == g
+            b += float(np.mean(terms[rows])) * (jo[rows].T @ jo[rows])
+        p = a_inv @ b @ a_inv
         return 0.5 * (p + p.T)
     if leverage:
         h = slope * np.einsum('ki,ij,kj->k', jo, a_inv, jo)
@@ -265,9 +300,12 @@ class MapSettings:
         ``'sandwich'``: the robust estimate's own covariance, with the residuals' spread measured
         at the solution (:func:`sandwich_covariance`; Gauss-Newton while too few observations);
         ``'sandwich_hc3'``: the same with the spread of leverage-corrected residuals (right also
-        when a few selected observations inform a direction alone); ``'sandwich_white'``: each
+        when a few selected observations inform a direction alone); ``'sandwich_blocks'``: that
+        spread pooled separately over the detections' position rows and their orientation rows
+        (right also when the law misjudges the two by different factors); ``'sandwich_white'``: each
         residual row's own spread (White's HC1 form: right also when the law's shape, not only
-        its scale, is wrong); ``'gauss_newton'``: the
+        its scale, is wrong); ``'sandwich_white_hc3'``: each row's own leverage-corrected spread
+        (their HC3 form); ``'gauss_newton'``: the
         inverse Gauss-Newton information, inliers as Gaussian evidence
         of the stated covariance, outliers at their robust weight.
     twins : bool
@@ -779,8 +817,12 @@ class MapEstimator:
         # robust (IRLS) weight. scipy's robust-scaled Jacobian would also shrink the weight of
         # 1-2 sigma residuals and so overstate the uncertainty.
         jr = jac(res.x)
+        # The noise law is block-diagonal, so the whitening keeps each detection's position rows
+        # (0-2) and orientation rows (3-5) apart.
+        groups = np.tile(_POSE_BLOCKS, len(zs)) if s.covariance == 'sandwich_blocks' else None
         P = (sandwich_covariance(jr[:m], jr[m:], res.fun[m:], loss, s.loss_scale,  # noqa: N806
-                                 leverage=s.covariance == 'sandwich_hc3', per_row=s.covariance == 'sandwich_white')
+                                 leverage=s.covariance in ('sandwich_hc3', 'sandwich_blocks', 'sandwich_white_hc3'),
+                                 per_row=s.covariance.startswith('sandwich_white'), groups=groups)
              if s.covariance.startswith('sandwich') else None)
         if P is None:
             r = res.fun[m:].reshape(-1, 6)               # unscaled residuals at the solution

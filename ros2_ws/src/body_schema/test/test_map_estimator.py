@@ -327,6 +327,12 @@ def test_leverage_correction_grows_where_few_observations_inform_a_direction():
     assert 0.98 < inflation(even) < 1.05
     assert inflation(uneven) > inflation(even) + 0.05
 
+    def row_inflation(x):        # each row's own spread, with and without its leverage correction
+        return np.trace(sandwich_covariance(jp, x, u, 'cauchy', 3.0, per_row=True, leverage=True)) / \
+            np.trace(sandwich_covariance(jp, x, u, 'cauchy', 3.0, per_row=True))
+    assert 1.0 < row_inflation(even) < 1.1                  # HC3 widens a little more than HC1 even so
+    assert row_inflation(uneven) > row_inflation(even) + 0.1
+
 
 def test_per_row_spread_follows_a_law_of_the_wrong_shape_where_the_pooled_one_cannot():
     # Stated noise 1 everywhere; the rows that see parameters 0-2 are really 0.4 wide and those
@@ -342,19 +348,36 @@ def test_per_row_spread_follows_a_law_of_the_wrong_shape_where_the_pooled_one_ca
     X[100:, 3] = rng.normal(size=100)
     sigma = np.r_[np.full(100, 0.4), np.full(100, 0.8)]
     jp = 1e-3 * np.eye(4)
-    nees = {False: [], True: []}
+    groups = np.repeat([0, 1], 100)
+    nees = {'pooled': [], 'per_row': [], 'groups': []}
     for _ in range(300):
         y = sigma * rng.normal(size=200)                     # truth 0
 
         def fun(b):
             return np.concatenate([jp @ b, y - X @ b])
         res = least_squares(fun, np.zeros(4), loss='cauchy', f_scale=3.0)
-        for per_row in nees:
-            P = sandwich_covariance(jp, -X, res.fun[4:], 'cauchy', 3.0, per_row=per_row)  # noqa: N806
-            nees[per_row].append(res.x ** 2 / np.diag(P))      # per parameter, 1 on average if right
-    pooled, per_row = np.mean(nees[False], axis=0), np.mean(nees[True], axis=0)
+        u = res.fun[4:]
+        for name, P in (('pooled', sandwich_covariance(jp, -X, u, 'cauchy', 3.0)),  # noqa: N806
+                        ('per_row', sandwich_covariance(jp, -X, u, 'cauchy', 3.0, per_row=True)),
+                        ('groups', sandwich_covariance(jp, -X, u, 'cauchy', 3.0, leverage=True, groups=groups))):
+            nees[name].append(res.x ** 2 / np.diag(P))      # per parameter, 1 on average if right
+    pooled, per_row, grouped = (np.mean(nees[k], axis=0) for k in ('pooled', 'per_row', 'groups'))
     assert pooled[3] > 1.5 and np.all(pooled[:3] < 0.6)        # too narrow, then too wide
     assert np.all((per_row > 0.7) & (per_row < 1.4)), per_row    # 300 trials: +-0.1 of noise
+    assert np.all((grouped > 0.7) & (grouped < 1.4)), grouped    # a spread per group of rows: as right
+
+
+def test_one_group_of_rows_is_the_pooled_spread():
+    from body_schema.map_estimator import sandwich_covariance
+
+    rng = np.random.default_rng(6)
+    jo, u, jp = rng.normal(size=(120, 5)), rng.normal(size=120), 1e-2 * np.eye(5)
+    for leverage in (False, True):
+        np.testing.assert_allclose(
+            sandwich_covariance(jp, jo, u, 'cauchy', 3.0, leverage=leverage, groups=np.zeros(120, int)),
+            sandwich_covariance(jp, jo, u, 'cauchy', 3.0, leverage=leverage), rtol=1e-12)
+    with pytest.raises(ValueError, match=r'groups must have shape \(120,\).*got \(6,\)'):
+        sandwich_covariance(jp, jo, u, 'cauchy', 3.0, groups=np.zeros(6, int))
 
 
 def test_sandwich_declines_without_enough_residuals():

@@ -8,13 +8,16 @@ used (``config.json``: the ``estimator.*`` parameters of its method) through
 identifiable parameter combinations, its band, and the re-run's final error next to the online
 one (they agree when the re-run reproduces the run), then how many runs lie inside their band and
 how the innovations after the warm-up compare with the noise law (how many beyond its 99.99 %
-bound, against the 1 in 10,000 a right law gives; the median of the runs' median NIS). Exit
+bound, against the 1 in 10,000 a right law gives; the median of the runs' median NIS), then the
+runs' average NEES against its band over the runs (Bar-Shalom's consistency test) and how widely
+their NEES spread against a consistent estimator's (:func:`nees_dispersion`: how many would be in
+band were the covariance centred right, with the spread they have). Exit
 status 1 when a requested run has no finished recording (the table then covers fewer runs).
 ``--covariance`` re-runs the recordings with another posterior covariance than the runs used
 (the MAP estimator's ``covariance`` setting): the same observations, so the same estimates as long
-as the change test, whose innovations the covariance enters, fires where it did (the last column
-says whether they did). ``--set estimator.NAME=VALUE`` re-runs them with any other estimator parameter
-changed; the table's last columns count the runs' outlier verdicts online and in the re-run (the
+as the change test, whose innovations the covariance enters, fires where it did (the re-run vs online
+column says whether they did). ``--set estimator.NAME=VALUE`` re-runs them with any other estimator parameter
+changed; two columns count the runs' outlier verdicts online and in the re-run (the
 MAP estimator's ``verdict_nfev``, for one, changes only the verdicts).
 
 Usage (from the repository root)::
@@ -82,6 +85,53 @@ def parse_override(text: str) -> tuple[str, Any]:
     return name, value
 
 
+def nees_dispersion(nees: Sequence[float], dofs: Sequence[int]) -> dict[str, float]:
+    """How the runs' final NEES spread, against how a consistent estimator's would.
+
+    A consistent estimator's NEES is chi-square with ``k`` degrees of freedom, so ``log NEES`` has
+    mean ``digamma(k/2) + log 2`` and standard deviation ``sqrt(trigamma(k/2))`` (0.27 for k = 28).
+    Runs whose NEES spreads wider than that miss their per-run band however well the covariance is
+    centred; ``in_band_if_centred`` is the share of runs a log-normal NEES with the runs' own spread
+    of ``log NEES``, centred where a consistent one is, would put inside the 95 % band (about 0.95
+    at the chi-square's own spread). The average NEES and its band over the runs are Bar-Shalom's
+    test of consistency over many runs (:func:`body_schema.identifiability.average_nees_band`).
+
+    Parameters
+    ----------
+    nees : sequence of float, length N >= 2
+        Each run's final NEES.
+    dofs : sequence of int, length N
+        Each run's NEES degrees of freedom.
+
+    Returns
+    -------
+    dict
+        ``average``, ``average_band`` (lo, hi), ``log_sd``, ``chi2_log_sd`` (at the mean dof) and
+        ``in_band_if_centred``.
+
+    Raises
+    ------
+    ValueError
+        If fewer than two runs are given, the lengths differ or a NEES is not positive.
+    """
+    from scipy import special, stats
+
+    from body_schema.identifiability import average_nees_band
+
+    x, k = np.asarray(nees, dtype=float), np.asarray(dofs, dtype=float)
+    if x.size < 2 or x.shape != k.shape:
+        raise ValueError(f'nees_dispersion needs >= 2 runs and one dof per run, got {x.size} NEES and {k.size} dofs')
+    if np.any(~np.isfinite(x) | (x <= 0)):
+        raise ValueError(f'nees_dispersion: every NEES must be finite and > 0, got {x.tolist()}')
+    log_sd = float(np.std(np.log(x), ddof=1))
+    centre = special.digamma(k / 2) + np.log(2.0)
+    lo, hi = stats.chi2.ppf(0.025, k), stats.chi2.ppf(0.975, k)
+    inside = stats.norm.cdf((np.log(hi) - centre) / log_sd) - stats.norm.cdf((np.log(lo) - centre) / log_sd)
+    return {'average': float(x.mean()), 'average_band': average_nees_band([int(d) for d in k]),
+            'log_sd': log_sd, 'chi2_log_sd': float(np.sqrt(special.polygamma(1, k.mean() / 2))),
+            'in_band_if_centred': float(inside.mean())}
+
+
 def run_nees(root: Path, method: str, repetitions: Sequence[int], covariance: str = '',
              overrides: dict[str, Any] | None = None) -> list[dict[str, Any]]:
     """NEES and final errors of ``method``'s recorded runs ``repetitions`` under ``root`` (re-run with
@@ -105,6 +155,7 @@ def run_nees(root: Path, method: str, repetitions: Sequence[int], covariance: st
         lo, hi = ev.nees_band or (float('nan'), float('nan'))
         inn = ev.innovations
         out.append({'method': method, 'repetition': rep, 'nees': ev.nees_identifiable, 'band': (lo, hi),
+                    'dof': ev.identifiable,
                     'in_band': bool(lo <= ev.nees_identifiable <= hi),
                     'position_mm': ev.rows[-1].position_mm, 'online_position_mm': float(online['position_mm']),
                     'innovations': 0 if inn is None else inn.count, 'beyond': 0 if inn is None else inn.beyond,
@@ -112,6 +163,17 @@ def run_nees(root: Path, method: str, repetitions: Sequence[int], covariance: st
                     'online_outliers': sum(r['outcome'] == 'outlier' for r in records),
                     'outlier_verdicts': ev.counters.get('outlier_verdicts', 0)})
     return out
+
+
+def _dispersion_cells(rows: Sequence[dict[str, Any]]) -> str:
+    """The table's last three cells (n/a below two runs with a NEES)."""
+    usable = [r for r in rows if np.isfinite(r['nees']) and r['nees'] > 0]
+    if len(usable) < 2:
+        return 'n/a | n/a | n/a'
+    d = nees_dispersion([r['nees'] for r in usable], [r['dof'] for r in usable])
+    lo, hi = d['average_band']
+    return (f'{d["average"]:.1f} ({lo:.1f}-{hi:.1f}) | {d["log_sd"]:.2f} ({d["chi2_log_sd"]:.2f}) | '
+            f'{d["in_band_if_centred"] * len(usable):.1f} of {len(usable)}')
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -136,8 +198,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     missing = 0
     print('| method | runs | NEES in its band | NEES median | band (95 %) | innovations beyond the 99.99 % bound '
           '(expected) | median NIS (5.3) | re-run vs online (max diff mm) | outlier verdicts online | '
-          're-run |')
-    print('|---|---|---|---|---|---|---|---|---|---|')
+          're-run | average NEES (its 95 % band) | spread of log NEES (consistent) | in band if centred |')
+    print('|---|---|---|---|---|---|---|---|---|---|---|---|---|')
     for method in args.methods:
         rows = run_nees(args.output, method, range(args.repetitions), args.covariance, overrides)
         missing += args.repetitions - len(rows)
@@ -157,7 +219,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f'| {method} | {len(rows)} | {sum(r["in_band"] for r in rows)} of {len(rows)} | {np.median(nees):.1f} | '
               f'{band[0]:.1f}-{band[1]:.1f} | {beyond} of {count} ({count * 1e-4:.2f}) | '
               f'{median_nis} | {diff:.3f} | {sum(r["online_outliers"] for r in rows)} | '
-              f'{sum(r["outlier_verdicts"] for r in rows)} |')
+              f'{sum(r["outlier_verdicts"] for r in rows)} | {_dispersion_cells(rows)} |')
     if missing:
         # A table over fewer runs than asked for is partial: say so in the exit status too.
         print(f'experiment_nees: {missing} of the requested runs have no finished recording', file=sys.stderr)

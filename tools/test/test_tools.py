@@ -170,6 +170,30 @@ def test_box_proposal_prints_a_box_and_its_rendered_check(capsys: pytest.Capture
     assert re.search(r'^# rendered \(left, 4 configurations, seed 1\): a marker detected in [\d.]+%', out, re.M)
 
 
+def test_nees_dispersion_finds_a_consistent_spread_and_a_wider_one() -> None:
+    from scipy import stats
+
+    from tools.experiment_nees import nees_dispersion
+
+    k = np.full(4000, 28)
+    right = stats.chi2.rvs(28, size=4000, random_state=np.random.default_rng(0))
+    d = nees_dispersion(right, k)
+    assert d['chi2_log_sd'] == pytest.approx(0.272, abs=0.002)
+    assert d['log_sd'] == pytest.approx(d['chi2_log_sd'], rel=0.05)
+    assert 0.93 < d['in_band_if_centred'] < 0.96                 # the log-normal stand-in for chi-square
+    assert d['average_band'][0] < d['average'] < d['average_band'][1]
+    # The same centre, every log NEES spread 1.5x wider: fewer in band however well centred, and
+    # the same average test passes or fails on the centre alone.
+    centre = np.mean(np.log(right))
+    wide = nees_dispersion(np.exp(centre + 1.5 * (np.log(right) - centre)), k)
+    assert wide['log_sd'] == pytest.approx(1.5 * d['log_sd'])
+    assert wide['in_band_if_centred'] < 0.85
+    with pytest.raises(ValueError, match='>= 2 runs'):
+        nees_dispersion([20.0], [28])
+    with pytest.raises(ValueError, match=r'finite and > 0, got \[20.0, 0.0\]'):
+        nees_dispersion([20.0, 0.0], [28, 28])
+
+
 @pytest.fixture(scope='module')
 def recorded_experiment(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """One recorded AL run of four iterations with the defaults (both eyes), on the real graph."""
@@ -196,6 +220,7 @@ def test_experiment_nees_reruns_each_recorded_run_to_its_online_error(recorded_e
     assert row[:3] == ['AL', '1', row[2]] and row[2].endswith('of 1')
     assert float(row[3]) > 0 and float(row[7]) < 1e-6          # the re-run ends at the online error
     assert row[8] == row[9]                                     # ... with the online verdicts
+    assert row[10:] == ['n/a'] * 3                              # one run: no spread to measure
     with pytest.raises(KeyError, match="no settings for method 'CCSAL'"):
         experiment_nees.run_nees(recorded_experiment, 'CCSAL', [0])
     # A repetition that was never run makes the table partial, and the exit status says so.

@@ -127,7 +127,7 @@ _PSI_SLOPE = {
 }
 
 #: How the posterior covariance is computed (:attr:`MapSettings.covariance`).
-COVARIANCES = ('sandwich', 'sandwich_hc3', 'sandwich_blocks', 'sandwich_white', 'sandwich_white_hc3', 'gauss_newton')
+COVARIANCES = ('sandwich', 'sandwich_hc3', 'sandwich_blocks', 'sandwich_white', 'sandwich_white_hc2', 'sandwich_white_hc3', 'gauss_newton')
 
 #: Group of each of a detection's six whitened residual rows: position 0, orientation 1.
 _POSE_BLOCKS = np.array([0, 0, 0, 1, 1, 1])
@@ -138,7 +138,8 @@ LOSS_SCALE_RANGE = (0.1, 100.0)
 
 def sandwich_covariance(jp: NDArray[np.float64], jo: NDArray[np.float64], u: NDArray[np.float64], loss: str,
                         scale: float, min_dof: float = 12.0, leverage: bool = False, per_row: bool = False,
-                        groups: NDArray[np.int_] | None = None) -> NDArray[np.float64] | None:
+                        groups: NDArray[np.int_] | None = None, leverage_power: int = 2
+                        ) -> NDArray[np.float64] | None:
     """Huber's sandwich covariance of a robust MAP estimate, ``A^-1 B A^-1``.
 
     With whitened observation residuals ``u`` that share one distribution, whatever its shape,
@@ -164,7 +165,8 @@ def sandwich_covariance(jp: NDArray[np.float64], jo: NDArray[np.float64], u: NDA
     ``c = k / dof``, White's heteroskedasticity-consistent estimator with the degrees-of-freedom
     factor (HC1; MacKinnon and White, 1985), ``A`` as above; with ``leverage`` as well, each row's
     own correction instead, ``psi_k^2 / (1 - h_k)^2`` (their HC3), which HC1 lacks where a few
-    rows carry a direction. It follows a
+    rows carry a direction; ``leverage_power`` 1 makes it ``psi_k^2 / (1 - h_k)`` (HC2, unbiased
+    when the rows share one variance; HC3 errs wide). It follows a
     law whose shape is wrong, some residual rows wider than others relative to their stated
     variance (one whitened component of a detection overstated more than the rest), which one
     pooled scale cannot; it is noisier than the pooled spread with few rows per parameter, and
@@ -189,6 +191,8 @@ def sandwich_covariance(jp: NDArray[np.float64], jo: NDArray[np.float64], u: NDA
         Whitened observation residuals at the solution.
     groups : ndarray of int, shape (k,), optional
         Each observation row's group (labels ``0 .. G - 1``).
+    leverage_power : int
+        Exponent of ``1 - h_k`` in the per-row leverage correction (2: HC3, 1: HC2).
     loss : str
         One of :data:`LOSSES`; ``scale`` its ``f_scale``.
     min_dof : float
@@ -219,7 +223,7 @@ def sandwich_covariance(jp: NDArray[np.float64], jo: NDArray[np.float64], u: NDA
         # optimistic on the iCub's tuning runs (NEES median 34 against 28).
         if leverage:
             h = slope * np.einsum('ki,ij,kj->k', jo, a_inv, jo)
-            w = psi ** 2 / np.clip(1.0 - h, 0.05, 1.0) ** 2
+            w = psi ** 2 / np.clip(1.0 - h, 0.05, 1.0) ** leverage_power
             p = a_inv @ (prior + (jo * w[:, None]).T @ jo) @ a_inv
         else:
             p = a_inv @ (prior + (u.size / dof) * (jo * (psi ** 2)[:, None]).T @ jo) @ a_inv
@@ -821,8 +825,10 @@ class MapEstimator:
         # (0-2) and orientation rows (3-5) apart.
         groups = np.tile(_POSE_BLOCKS, len(zs)) if s.covariance == 'sandwich_blocks' else None
         P = (sandwich_covariance(jr[:m], jr[m:], res.fun[m:], loss, s.loss_scale,  # noqa: N806
-                                 leverage=s.covariance in ('sandwich_hc3', 'sandwich_blocks', 'sandwich_white_hc3'),
-                                 per_row=s.covariance.startswith('sandwich_white'), groups=groups)
+                                 leverage=s.covariance in ('sandwich_hc3', 'sandwich_blocks', 'sandwich_white_hc2',
+                                                           'sandwich_white_hc3'),
+                                 per_row=s.covariance.startswith('sandwich_white'), groups=groups,
+                                 leverage_power=1 if s.covariance == 'sandwich_white_hc2' else 2)
              if s.covariance.startswith('sandwich') else None)
         if P is None:
             r = res.fun[m:].reshape(-1, 6)               # unscaled residuals at the solution

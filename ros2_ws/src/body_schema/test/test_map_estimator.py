@@ -332,6 +332,10 @@ def test_leverage_correction_grows_where_few_observations_inform_a_direction():
             np.trace(sandwich_covariance(jp, x, u, 'cauchy', 3.0, per_row=True))
     assert 1.0 < row_inflation(even) < 1.1                  # HC3 widens a little more than HC1 even so
     assert row_inflation(uneven) > row_inflation(even) + 0.1
+    hc2 = np.trace(sandwich_covariance(jp, uneven, u, 'cauchy', 3.0, per_row=True, leverage=True, leverage_power=1))
+    hc1, hc3 = (np.trace(sandwich_covariance(jp, uneven, u, 'cauchy', 3.0, per_row=True, leverage=lev))
+                for lev in (False, True))
+    assert hc1 < hc2 < hc3                                  # HC2's correction: half of HC3's, in the exponent
 
 
 def test_per_row_spread_follows_a_law_of_the_wrong_shape_where_the_pooled_one_cannot():

@@ -68,7 +68,7 @@ def test_with_dh_builds_another_model():
     (lambda d: d.__setitem__('noise_model', [1e-7]), r'noise_model: must be a mapping'),
     (lambda d: d.__setitem__('noise_model', {'covariance': 'robust'}),
      r"noise_model\.covariance: must be one of "
-     r"\['sandwich', 'sandwich_hc3', 'sandwich_blocks', 'sandwich_white', 'sandwich_white_hc3', 'gauss_newton'\], got 'robust'"),
+     r"\['sandwich', 'sandwich_hc3', 'sandwich_blocks', 'sandwich_white', 'sandwich_white_hc2', 'sandwich_white_hc3', 'gauss_newton'\], got 'robust'"),
     (lambda d: d.__setitem__('selection', {'body_penalty': 'yes'}),
      r"selection\.body_penalty: must be true or false, got 'yes'"),
     (lambda d: d.__setitem__('selection', {'body_penalty': True, 'penalty': 0.1}),

@@ -125,8 +125,8 @@ class EstimatorSettings:
                               "direction), 'sandwich_blocks' (that spread pooled separately over the "
                               "position rows and the orientation rows: also when the law misjudges the two "
                               "by different factors), 'sandwich_white' (each residual row's own spread: also when "
-                              "the law's shape is wrong), 'sandwich_white_hc3' (each row's own leverage-corrected "
-                              "spread) or 'gauss_newton' (the stated noise "
+                              "the law's shape is wrong), 'sandwich_white_hc2' or 'sandwich_white_hc3' (each row's "
+                              "own leverage-corrected spread, HC2 or HC3) or 'gauss_newton' (the stated noise "
                               "taken as exact); empty: the robot description's noise_model.covariance, else "
                               f"'{_MAP.covariance}'", choices=('',) + COVARIANCES)
     camera_prior: str = setting('', 'MAP: estimate the camera pose with the table, prior one-sigma per axis '

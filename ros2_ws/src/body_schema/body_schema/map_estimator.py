@@ -189,20 +189,24 @@ def sandwich_covariance(jp: NDArray[np.float64], jo: NDArray[np.float64], u: NDA
         Whitened observation rows.
     u : ndarray, shape (k,)
         Whitened observation residuals at the solution.
-    groups : ndarray of int, shape (k,), optional
-        Each observation row's group (labels ``0 .. G - 1``).
-    leverage_power : int
-        Exponent of ``1 - h_k`` in the per-row leverage correction (2: HC3, 1: HC2).
     loss : str
         One of :data:`LOSSES`; ``scale`` its ``f_scale``.
     min_dof : float
         Fewer residual degrees of freedom than this, or a mean influence slope below 0.05 (most
         residuals beyond the loss scale): None (too little to estimate the spread from).
+    leverage, per_row : bool
+        See above.
+    groups : ndarray of int, shape (k,), optional
+        Each observation row's group (labels ``0 .. G - 1``).
+    leverage_power : int
+        Exponent of ``1 - h_k`` in the per-row leverage correction (2: HC3, 1: HC2).
 
     Returns
     -------
     ndarray, shape (n, n), or None
     """
+    if leverage_power not in (1, 2):
+        raise ValueError(f'leverage_power must be 1 (HC2) or 2 (HC3), got {leverage_power}')
     z = (u / scale) ** 2
     slope = float(np.mean(_PSI_SLOPE[loss](z))) if u.size else 0.0
     if slope < 0.05:
@@ -308,8 +312,9 @@ class MapSettings:
         spread pooled separately over the detections' position rows and their orientation rows
         (right also when the law misjudges the two by different factors); ``'sandwich_white'``: each
         residual row's own spread (White's HC1 form: right also when the law's shape, not only
-        its scale, is wrong); ``'sandwich_white_hc3'``: each row's own leverage-corrected spread
-        (their HC3 form); ``'gauss_newton'``: the
+        its scale, is wrong); ``'sandwich_white_hc2'`` and ``'sandwich_white_hc3'``: each row's own
+        leverage-corrected spread (their HC2 and HC3 forms; the iCub's description takes HC2);
+        ``'gauss_newton'``: the
         inverse Gauss-Newton information, inliers as Gaussian evidence
         of the stated covariance, outliers at their robust weight.
     twins : bool
@@ -822,7 +827,8 @@ class MapEstimator:
         # 1-2 sigma residuals and so overstate the uncertainty.
         jr = jac(res.x)
         # The noise law is block-diagonal, so the whitening keeps each detection's position rows
-        # (0-2) and orientation rows (3-5) apart.
+        # (0-2) and orientation rows (3-5) apart (a detected change's jump, added to older
+        # observations' covariance, mixes them a little).
         groups = np.tile(_POSE_BLOCKS, len(zs)) if s.covariance == 'sandwich_blocks' else None
         P = (sandwich_covariance(jr[:m], jr[m:], res.fun[m:], loss, s.loss_scale,  # noqa: N806
                                  leverage=s.covariance in ('sandwich_hc3', 'sandwich_blocks', 'sandwich_white_hc2',

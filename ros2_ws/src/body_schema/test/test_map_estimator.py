@@ -336,6 +336,8 @@ def test_leverage_correction_grows_where_few_observations_inform_a_direction():
     hc1, hc3 = (np.trace(sandwich_covariance(jp, uneven, u, 'cauchy', 3.0, per_row=True, leverage=lev))
                 for lev in (False, True))
     assert hc1 < hc2 < hc3                                  # HC2's correction: half of HC3's, in the exponent
+    with pytest.raises(ValueError, match='leverage_power must be 1 .* got 3'):
+        sandwich_covariance(jp, uneven, u, 'cauchy', 3.0, per_row=True, leverage=True, leverage_power=3)
 
 
 def test_per_row_spread_follows_a_law_of_the_wrong_shape_where_the_pooled_one_cannot():

@@ -26,8 +26,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import minimize, nnls
-from scipy.spatial.transform import Rotation
 
+from body_schema.map_estimator import pose_residuals
 from body_schema.markers import marker_corners
 from body_schema.noise import ConstantNoise, NoiseModel, PoseDependentNoise, view_geometry
 from body_schema.robot import ArmModel
@@ -35,7 +35,7 @@ from body_schema.robot import ArmModel
 from marker_detector.detection import DetectorConfig, FrameResult, HandPoseEstimator, MarkerPose, gate_marker
 
 __all__ = ['FLIP_DEG', 'Frame', 'FrameScores', 'NoiseFit', 'collect', 'draw_scores', 'evaluate', 'eye_result',
-           'fit_noise', 'pose_error', 'summarize', 'time_frames', 'binned']
+           'fit_noise', 'summarize', 'time_frames', 'binned']
 
 
 @dataclass
@@ -174,18 +174,6 @@ def eye_result(frame: Frame, estimator: HandPoseEstimator) -> tuple[FrameResult,
     return FrameResult(markers=[p for p in gated if p.ok], hand=hand, k=frame.k), frame.root_T_cam
 
 
-def pose_error(pose: NDArray[np.float64], truth: NDArray[np.float64]) -> NDArray[np.float64]:
-    """An estimated pose's error against the truth, both (4, 4) in the root frame.
-
-    Returns
-    -------
-    ndarray, shape (6,)
-        Position difference [m] and the rotation vector of ``R_est R_true^T`` [rad], root frame.
-    """
-    rot = Rotation.from_matrix(pose[:3, :3] @ truth[:3, :3].T).as_rotvec()
-    return np.concatenate([pose[:3, 3] - truth[:3, 3], rot])
-
-
 def evaluate(frames: Sequence[Frame], estimator: HandPoseEstimator, fusion: str | None = None) -> FrameScores:
     """Gate and fuse stored frames with ``estimator``'s settings; compare with the truth."""
     n = len(frames)
@@ -204,7 +192,7 @@ def evaluate(frames: Sequence[Frame], estimator: HandPoseEstimator, fusion: str 
             continue
         out.success[i] = True
         out.n_markers[i] = sum(p.ok for p in gated)
-        err = pose_error(hand.pose, f.truth)
+        err = pose_residuals(hand.pose[None], f.truth[None])[0]      # estimate minus truth, root frame
         out.pos_vec[i], out.rot_vec[i] = err[:3], err[3:]
         out.pos_err[i] = np.linalg.norm(out.pos_vec[i])
         out.rot_err[i] = np.linalg.norm(out.rot_vec[i])

@@ -40,7 +40,7 @@ from typing import Sequence
 
 import numpy as np
 
-from body_schema.map_estimator import LOSS_SCALE_RANGE, MapSettings
+from body_schema.map_estimator import LOSS_SCALE_RANGE, MapSettings, pose_residuals
 from body_schema.noise import ConstantNoise, NoiseModel, PoseDependentNoise, stereo_covariance
 from body_schema.robot import NOISE_LAW_KEYS, ArmModel, load_robot
 from body_schema.sampling import uniform_configs
@@ -210,8 +210,6 @@ def stereo_ratios(frames: Sequence[Frame], law: PoseDependentNoise, model: ArmMo
     (pairs whose refinement was refused and the fused poses kept), and the stereo and the left
     eye's median position and orientation errors [mm, deg] over the same pairs.
     """
-    from scipy.spatial.transform import Rotation
-
     est = HandPoseEstimator(model, law, config or DetectorConfig())
     unit = replace(law, stereo_pos=1.0, stereo_rot=1.0)
     by_config: dict[int, dict[str, Frame]] = {}
@@ -229,18 +227,16 @@ def stereo_ratios(frames: Sequence[Frame], law: PoseDependentNoise, model: ArmMo
         fused = fuse_estimates([r.hand for r, _ in views])
         hand = est.stereo(views)
         fallbacks += bool(np.array_equal(hand.pose, fused.pose))
-        e_p = hand.pose[:3, 3] - truth[:3, 3]
-        e_o = Rotation.from_matrix(hand.pose[:3, :3] @ truth[:3, :3].T).as_rotvec()
+        e_p, e_o = np.split(pose_residuals(hand.pose[None], truth[None])[0], 2)
         if np.degrees(np.linalg.norm(e_o)) > FLIP_DEG:
             continue
         # Whitened by the eyes' fused covariance (ratios 1), whose blocks the ratios then scale.
         c = stereo_covariance(np.stack([r.hand.covariance for r, _ in views]), unit)
         ratios_p.append(e_p @ np.linalg.solve(c[:3, :3], e_p) / 3)
         ratios_o.append(e_o @ np.linalg.solve(c[3:, 3:], e_o) / 3)
-        lp = views[0][0].hand.pose
+        l_p, l_o = np.split(pose_residuals(views[0][0].hand.pose[None], truth[None])[0], 2)
         errs.append((1e3 * np.linalg.norm(e_p), np.degrees(np.linalg.norm(e_o))))
-        left.append((1e3 * np.linalg.norm(lp[:3, 3] - truth[:3, 3]),
-                     np.degrees(np.linalg.norm(Rotation.from_matrix(lp[:3, :3] @ truth[:3, :3].T).as_rotvec()))))
+        left.append((1e3 * np.linalg.norm(l_p), np.degrees(np.linalg.norm(l_o))))
     if not ratios_p:
         return {'stereo_pos': float('nan'), 'stereo_rot': float('nan'), 'n': 0, 'fallbacks': fallbacks}
     e, lo = np.median(errs, axis=0), np.median(left, axis=0)

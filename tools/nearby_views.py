@@ -35,6 +35,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from body_schema import load_robot
+from body_schema.map_estimator import pose_residuals
 from body_schema.noise import PoseDependentNoise
 from body_schema.robot import ArmModel
 from body_schema.sampling import uniform_configs
@@ -104,7 +105,7 @@ def detection_errors(model: ArmModel, world: Any, configs: NDArray[np.float64]
     from marker_detector.detection import DetectorConfig, HandPoseEstimator
     from marker_detector.stereo import EyeResult, combine
 
-    from .detector_accuracy import collect, eye_result, pose_error
+    from .detector_accuracy import collect, eye_result
 
     est = HandPoseEstimator(model, PoseDependentNoise.for_robot(model), DetectorConfig())
     frames = collect(model, world, configs, [('left', SIZE), ('right', SIZE)])
@@ -115,10 +116,10 @@ def detection_errors(model: ArmModel, world: Any, configs: NDArray[np.float64]
         fl, fr = frames[2 * i], frames[2 * i + 1]
         views = {f.eye: EyeResult(f.eye, None, *eye_result(f, est), 0.0) for f in (fl, fr)}
         if views['left'].result.hand is not None:
-            left[i] = pose_error(views['left'].result.hand.pose, fl.truth)
+            left[i] = pose_residuals(views['left'].result.hand.pose[None], fl.truth[None])[0]
         hand = combine(views, estimator=est)[2]       # what the detector node publishes for the stamp
         if hand is not None:
-            published[i] = pose_error(hand.pose, fl.truth)
+            published[i] = pose_residuals(hand.pose[None], fl.truth[None])[0]
             if all(v.result.hand is not None for v in views.values()):
                 stereo[i] = published[i]
     return left, stereo, published

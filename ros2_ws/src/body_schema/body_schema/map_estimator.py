@@ -199,7 +199,7 @@ def sandwich_covariance(jp: NDArray[np.float64], jo: NDArray[np.float64], u: NDA
     groups : ndarray of int, shape (k,), optional
         Each observation row's group (labels ``0 .. G - 1``).
     leverage_power : int
-        Exponent of ``1 - h_k`` in the per-row leverage correction (2: HC3, 1: HC2).
+        Exponent of ``1 - h_k`` in the leverage correction, of any form (2: HC3, 1: HC2).
 
     Returns
     -------
@@ -221,38 +221,30 @@ def sandwich_covariance(jp: NDArray[np.float64], jo: NDArray[np.float64], u: NDA
     if dof < min_dof:
         return None
     psi = _IRLS_WEIGHT[loss](z) * u
+    if groups is not None and not per_row:
+        groups = np.asarray(groups)
+        if groups.shape != u.shape:
+            raise ValueError(f'groups must have shape {u.shape} (one label per row), got {groups.shape}')
+    if leverage:
+        # Each row's psi^2 as it would be had its observation been left out (HC3; HC2 halfway).
+        h = slope * np.einsum('ki,ij,kj->k', jo, a_inv, jo)
+        corrected = psi ** 2 / np.clip(1.0 - h, 0.05, 1.0) ** leverage_power   # clip: a row the fit alone sets
     if per_row:
         # The slope stays pooled: a row's own psi' at the solution overstates the curvature where
         # the fit has pulled the residual in (the informative rows), which made the covariance
         # optimistic on the iCub's tuning runs (NEES median 34 against 28).
-        if leverage:
-            h = slope * np.einsum('ki,ij,kj->k', jo, a_inv, jo)
-            w = psi ** 2 / np.clip(1.0 - h, 0.05, 1.0) ** leverage_power
-            p = a_inv @ (prior + (jo * w[:, None]).T @ jo) @ a_inv
-        else:
-            p = a_inv @ (prior + (u.size / dof) * (jo * (psi ** 2)[:, None]).T @ jo) @ a_inv
-        return 0.5 * (p + p.T)
-    if groups is not None:
-        groups = np.asarray(groups)
-        if groups.shape != u.shape:
-            raise ValueError(f'groups must have shape {u.shape} (one label per row), got {groups.shape}')
-        if leverage:
-            h = slope * np.einsum('ki,ij,kj->k', jo, a_inv, jo)
-            terms = psi ** 2 / np.clip(1.0 - h, 0.05, 1.0) ** 2
-        else:
-            terms = psi ** 2 * (u.size / dof)
+        b = (prior + (jo * corrected[:, None]).T @ jo if leverage
+             else prior + (u.size / dof) * (jo * (psi ** 2)[:, None]).T @ jo)
+    elif groups is not None:
+        terms = corrected if leverage else psi ** 2 * (u.size / dof)
         b = prior.copy()
         for g in np.unique(groups):
             rows = groups == g
             b += float(np.mean(terms[rows])) * (jo[rows].T @ jo[rows])
-        p = a_inv @ b @ a_inv
-        return 0.5 * (p + p.T)
-    if leverage:
-        h = slope * np.einsum('ki,ij,kj->k', jo, a_inv, jo)
-        spread = float(np.mean(psi ** 2 / np.clip(1.0 - h, 0.05, 1.0) ** 2))    # clip: a row the fit alone sets
     else:
-        spread = float(psi @ psi) / dof
-    p = a_inv @ (prior + spread * data) @ a_inv
+        spread = float(np.mean(corrected)) if leverage else float(psi @ psi) / dof
+        b = prior + spread * data
+    p = a_inv @ b @ a_inv
     return 0.5 * (p + p.T)
 
 

@@ -154,6 +154,38 @@ def test_the_same_wrong_view_three_times_is_not_a_change_three_views_are(arm):
         MapSettings(change_separation=-1.0)
 
 
+def test_a_change_no_body_explains_is_withdrawn(arm):
+    """Flipped markers at three views pass the count, but the re-solved body leaves them outliers:
+    the jump is withdrawn and the estimate is the one without a change test; a real change stands."""
+    true, obs, _, _ = _run(arm, 9, 20, MapSettings(warmup=0))
+
+    def flipped(q):
+        z = arm.with_dh(true).forward_kinematics(q)
+        z[:3, :3] = z[:3, :3] @ np.diag([-1.0, -1.0, 1.0])     # a planar flip: 180 deg about the normal
+        return z
+
+    def after(settings):
+        est = _run(arm, 9, 20, settings)[2]
+        updates = [est.update(obs[i].q + 1e-3, flipped(obs[i].q), obs[0].R) for i in (2, 6, 11)]
+        return est, updates
+
+    confirmed, updates = after(MapSettings(warmup=0))
+    assert confirmed.n_changes == 0 and confirmed.n_changes_withdrawn >= 1
+    assert updates[-1].change_withdrawn and updates[-1].outlier and not updates[-1].change_detected
+    no_test = after(MapSettings(warmup=0, change_probability=0.0))[0]
+    np.testing.assert_array_equal(confirmed.x, no_test.x)
+    np.testing.assert_array_equal(confirmed.P, no_test.P)
+    unconfirmed = after(MapSettings(warmup=0, change_confirm=False))[0]
+    assert unconfirmed.n_changes == 1 and unconfirmed.n_changes_withdrawn == 0
+    assert not np.array_equal(unconfirmed.x, no_test.x)
+    # A body that did change is explained by the re-solve at once: the change stands.
+    changed = _true(arm, 9).copy()
+    changed[4, 1] += 0.010
+    changed[2, 3] += np.radians(3.0)
+    est = _run(arm, 9, 40, MapSettings(), {25: changed})[2]
+    assert est.n_changes == 1 and est.n_changes_withdrawn == 0
+
+
 def test_window_folds_old_observations_into_the_prior(arm):
     true, obs, full, _ = _run(arm, 4, 30)
     windowed = _run(arm, 4, 30, MapSettings(window=10))[2]

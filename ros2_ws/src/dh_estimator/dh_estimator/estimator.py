@@ -69,7 +69,7 @@ class EstimatorSettings:
     iterations : int
         EKF: linearisations per update (1: the paper's EKF; more: iterated EKF).
     loss, loss_scale, outlier_probability, window, change_probability, change_window,
-    change_separation_deg, jump_length, jump_angle, max_nfev, verdict_nfev :
+    change_separation_deg, jump_length, jump_angle, change_confirm, max_nfev, verdict_nfev :
         MAP: see :class:`body_schema.map_estimator.MapSettings`.
     same_config_tol : float
         Max-abs joint difference [rad] under which a configuration counts as the previous one.
@@ -142,6 +142,9 @@ class EstimatorSettings:
     twin_moves: bool = setting(_MAP.twins, 'MAP: after each re-solve move to the exact DH twin nearest the prior (the '
                                       'same hand poses, angles within a turn of the guess, no frame turned by pi '
                                       'that the prior does not turn): the camera cannot tell twins apart')
+    change_confirm: bool = setting(_MAP.change_confirm, 'MAP: a declared change stands only if the re-solve with '
+                                   'the jump explains most of the exceeding observations (within the outlier '
+                                   'bound); else the jump is withdrawn')
     restart_after: int = setting(_MAP.restart_after, 'MAP: after this many consecutive outliers also solve from '
                                  'the prior mean and keep the lower objective (a far guess can lead the solver '
                                  'into a wrong basin); 0: never', (0, 1000))
@@ -165,7 +168,7 @@ class EstimatorSettings:
                            change_count=self.change_count,
                            change_separation=float(np.radians(self.change_separation_deg)), warmup=self.warmup,
                            jump_length=self.jump_length,
-                           jump_angle=self.jump_angle, twins=self.twin_moves,
+                           jump_angle=self.jump_angle, change_confirm=self.change_confirm, twins=self.twin_moves,
                            restart_after=self.restart_after,
                            covariance=self.covariance or covariance or _MAP.covariance)
 
@@ -292,10 +295,11 @@ class OnlineEstimator:
             return {'updates': self.map.n_updates, 'rejected': 0, 'duplicates': self.n_duplicates,
                     'outliers': self.map.n_outliers, 'changes': self.map.n_changes,
                     'twin_moves': self.map.n_twin_moves, 'restarts': self.map.n_restarts,
-                    'resolved': self.map.n_resolved, 'outlier_verdicts': self.map.n_outlier_verdicts}
+                    'resolved': self.map.n_resolved, 'outlier_verdicts': self.map.n_outlier_verdicts,
+                    'withdrawn_changes': self.map.n_changes_withdrawn}
         return {'updates': self.ekf.n_updates, 'rejected': self.ekf.n_rejected,
                 'duplicates': self.n_duplicates, 'outliers': self.ekf.n_rejected, 'changes': 0, 'twin_moves': 0,
-                'restarts': 0, 'resolved': 0, 'outlier_verdicts': self.ekf.n_rejected}
+                'restarts': 0, 'resolved': 0, 'outlier_verdicts': self.ekf.n_rejected, 'withdrawn_changes': 0}
 
     def describe_last(self) -> str:
         """One line on the last offered observation, for logs and status messages."""
@@ -306,6 +310,8 @@ class OnlineEstimator:
                 text += f' beyond the {self.settings.outlier_probability:.1%} bound: outlier'
             if u.change_detected:
                 text += '; change detected, older evidence aged'
+            if u.change_withdrawn:
+                text += '; the change test fired but the re-solved body left its evidence beyond the bound: withdrawn'
             if u.twin_move:
                 text += '; moved to the twin nearest the prior'
             if u.restart:

@@ -48,7 +48,8 @@ def test_one_update_per_configuration(arm, kind):
     assert est.offer(q + 1e-5, z, R) is Outcome.DUPLICATE          # same static configuration
     np.testing.assert_array_equal(est.x, x)
     assert est.counters == {'updates': 1, 'rejected': 0, 'duplicates': 1, 'outliers': 0, 'changes': 0,
-                            'twin_moves': 0, 'restarts': 0, 'resolved': 0, 'outlier_verdicts': 0}
+                            'twin_moves': 0, 'restarts': 0, 'resolved': 0, 'outlier_verdicts': 0,
+                            'withdrawn_changes': 0}
     assert est.offer(q + 0.1, arm.forward_kinematics(q + 0.1), R) is Outcome.ACCEPTED
 
 

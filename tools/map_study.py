@@ -46,6 +46,7 @@ FORGETTING = {
     'change detection: 3 of 3 beyond p=0.999': {'change_probability': 0.999, 'change_window': 3, 'change_count': 3},
     'change detection: 2 of 3 beyond p=0.9999 (the former default)': {'change_window': 3, 'change_count': 2},
     'change detection: 3 of 4 beyond p=0.9999 (default)': {},
+    'default without the confirmation (change_confirm off)': {'change_confirm': False},
     'default, jump 5 mm / 1.5 deg': {'jump_length': 0.005, 'jump_angle': float(np.radians(1.5))},
     'default, jump 30 mm / 10 deg': {'jump_length': 0.03, 'jump_angle': float(np.radians(10.0))},
     'default + random walk 0.1 mm / 0.03 deg': {'q_length': 1e-8, 'q_angle': float(np.radians(0.03)) ** 2},

@@ -304,7 +304,7 @@ class MapSettings:
         otherwise the jump is withdrawn, the observation is taken as if the test had not fired
         and the judged exceedances leave the test's window. A changed body is explained at once
         (synthetic: after a 10 mm, 3 deg change every exceeding observation was at chi-square
-        0.1-2.0 in all of 20 runs); detection errors that repeat at neighbouring views are not.
+        2.0 or less in all of 20 runs); detection errors that repeat at neighbouring views are not.
     covariance : str
         ``'sandwich'``: the robust estimate's own covariance, with the residuals' spread measured
         at the solution (:func:`sandwich_covariance`; Gauss-Newton while too few observations);

@@ -662,17 +662,18 @@ class MapEstimator:
         q, pose, R = self._check(q, pose, R)  # noqa: N806
         saved = self._state()
         try:
-            return self._update(q, pose, R)
-        except _UnexplainedChange:
-            # The jump let the estimate move and the new body still leaves most of the evidence
-            # beyond the bound: detection errors, not a change. Update as if the test had not
-            # fired, and drop the judged exceedances (else the next update would count them again).
-            self._restore(saved)
-            u = replace(self._update(q, pose, R, allow_change=False), change_withdrawn=True)
-            self._recent_nis, self._recent_q = [], []
-            self.n_changes_withdrawn += 1
-            self.last = u
-            return u
+            try:
+                return self._update(q, pose, R)
+            except _UnexplainedChange:
+                # The jump let the estimate move and the new body still leaves most of the evidence
+                # beyond the bound: detection errors, not a change. Update as if the test had not
+                # fired, and drop the judged exceedances (else the next update would count them again).
+                self._restore(saved)
+                u = replace(self._update(q, pose, R, allow_change=False), change_withdrawn=True)
+                self._recent_nis, self._recent_q = [], []
+                self.n_changes_withdrawn += 1
+                self.last = u
+                return u
         except Exception:
             self._restore(saved)
             raise
@@ -748,8 +749,10 @@ class MapEstimator:
                 self.outlier_run = int(outlier)
         if change and s.change_confirm:
             # The exceedances are the change's evidence: a new body explains most of them at once.
-            judged = np.sum(self._whitened(self.x)[evidence] ** 2, axis=1)
-            if 2 * int(np.sum(judged <= self._outlier_bound)) <= judged.size:
+            # (Those a window shorter than the test's has folded into the prior are not judged.)
+            rows = evidence[evidence >= -self.n_observations]
+            judged = np.sum(self._whitened(self.x)[rows] ** 2, axis=1)
+            if rows.size and 2 * int(np.sum(judged <= self._outlier_bound)) <= rows.size:
                 raise _UnexplainedChange
         self.n_outlier_verdicts += int(outlier)
         self.last = MapUpdate(y, S, nis, float(np.sqrt(nis)), chi, outlier, change, nfev, moved, restart, resolved)
